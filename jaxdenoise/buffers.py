@@ -1,0 +1,181 @@
+"""`Buffers`: the frozen pytree of per-pixel inputs every method reads (DESIGN.md "Data contract").
+
+Arrays are float32, height x width x channels; a batch adds a leading axis and a sequence a
+leading time axis, so validation compares every dimension but the last across fields. A buffer
+the scene does not have is ``None`` (it is then not a leaf of the pytree, so ``jit`` specializes on
+which buffers are present).
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Iterable, Mapping
+
+import jax
+import numpy as np
+
+# field -> EXR channel names, in order (DESIGN.md "One EXR per frame"). Feature variances are one
+# channel per layer (the mean of the per-channel variances of the pixel mean).
+CHANNELS: dict[str, tuple[str, ...]] = {
+    "color": ("R", "G", "B"),
+    "color_var": ("var.R", "var.G", "var.B"),
+    "albedo": ("albedo.R", "albedo.G", "albedo.B"),
+    "albedo_var": ("albedo.var",),
+    "albedo2": ("albedo2.R", "albedo2.G", "albedo2.B"),
+    "albedo2_var": ("albedo2.var",),
+    "normal": ("N.X", "N.Y", "N.Z"),
+    "normal_var": ("N.var",),
+    "position": ("P.X", "P.Y", "P.Z"),
+    "position_var": ("P.var",),
+    "depth": ("Z",),
+    "depth_var": ("Z.var",),
+    "visibility": ("vis",),
+    "visibility_var": ("vis.var",),
+    "roughness": ("rough",),
+    "roughness_var": ("rough.var",),
+    "dx": ("dx.R", "dx.G", "dx.B"),
+    "dy": ("dy.R", "dy.G", "dy.B"),
+}
+IMAGE_FIELDS: tuple[str, ...] = tuple(CHANNELS)
+# Features whose variance is a separate field (Kalantari 2015 Eq. 12 uses a per-feature variance).
+FEATURES: tuple[str, ...] = ("albedo", "albedo2", "normal", "position", "depth", "visibility", "roughness")
+ALL_FIELDS: tuple[str, ...] = IMAGE_FIELDS + ("spp",)
+
+
+class BuffersError(ValueError):
+    """A `Buffers` is malformed or lacks what a method needs."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Buffers:
+    """Per-pixel inputs of one frame (or a batch / sequence of frames).
+
+    Fields (``None`` when absent): ``color`` (linear HDR radiance, the only required one),
+    ``color_var`` (variance of the pixel mean), ``albedo`` / ``albedo2`` (first / second non-specular
+    hit texture value), ``normal`` (world-space shading normal in [-1, 1]), ``position`` (world),
+    ``depth`` (camera distance), ``visibility`` (direct-light visibility fraction), ``roughness``,
+    ``dx`` / ``dy`` (``I[y, x+1] - I[y, x]`` and ``I[y+1, x] - I[y, x]``), ``<feature>_var`` (one
+    channel, variance of the feature's pixel mean) and ``spp`` (samples per pixel, scalar or one per
+    frame).
+    """
+
+    color: Any
+    color_var: Any = None
+    albedo: Any = None
+    albedo_var: Any = None
+    albedo2: Any = None
+    albedo2_var: Any = None
+    normal: Any = None
+    normal_var: Any = None
+    position: Any = None
+    position_var: Any = None
+    depth: Any = None
+    depth_var: Any = None
+    visibility: Any = None
+    visibility_var: Any = None
+    roughness: Any = None
+    roughness_var: Any = None
+    dx: Any = None
+    dy: Any = None
+    spp: Any = None
+
+    def __post_init__(self) -> None:
+        # Only check concrete shapes; JAX's tree utilities may rebuild the class with placeholders.
+        if all(hasattr(v, "shape") for v in self._present_values()):
+            self.validate()
+
+    def _present_values(self) -> list:
+        return [getattr(self, f) for f in ALL_FIELDS if getattr(self, f) is not None]
+
+    # -- validation --------------------------------------------------------------------------------
+    def validate(self, required: Iterable[str] = ("color",), *, where: str = "Buffers") -> "Buffers":
+        """Check channel counts, matching pixel grids, and that ``required`` buffers are present.
+
+        Raises `BuffersError` naming the offending field (and ``where``, e.g. a file name).
+        """
+        missing = sorted(f for f in required if f not in ALL_FIELDS or getattr(self, f) is None)
+        if missing:
+            unknown = [f for f in missing if f not in ALL_FIELDS]
+            if unknown:
+                raise BuffersError(f"{where}: unknown buffer name(s) {unknown}; known: {list(ALL_FIELDS)}")
+            have = sorted(self.present())
+            raise BuffersError(f"{where}: missing required buffer(s) {missing} (present: {have})")
+        grid = None
+        grid_field = None
+        for name in IMAGE_FIELDS:
+            value = getattr(self, name)
+            if value is None:
+                continue
+            shape = tuple(value.shape)
+            want = len(CHANNELS[name])
+            if len(shape) < 3:
+                raise BuffersError(f"{where}: buffer '{name}' has shape {shape}; expected (..., H, W, {want})")
+            if shape[-1] != want:
+                raise BuffersError(
+                    f"{where}: buffer '{name}' has {shape[-1]} channel(s); expected {want} {CHANNELS[name]}")
+            if grid is None:
+                grid, grid_field = shape[:-1], name
+            elif shape[:-1] != grid:
+                raise BuffersError(
+                    f"{where}: buffer '{name}' has pixel grid {shape[:-1]} but '{grid_field}' has {grid}")
+        if self.spp is not None and hasattr(self.spp, "shape") and grid is not None:
+            lead = grid[:-2]
+            if tuple(self.spp.shape) not in ((), tuple(lead)):
+                raise BuffersError(f"{where}: 'spp' has shape {tuple(self.spp.shape)}; expected () or {lead}")
+        return self
+
+    def check_needs(self, needs: Iterable[str], method: str) -> None:
+        """Raise a clear error when ``method`` needs buffers this frame lacks."""
+        missing = sorted(f for f in needs if getattr(self, f, None) is None)
+        if missing:
+            raise BuffersError(
+                f"method '{method}' needs buffer(s) {missing}, which this input lacks "
+                f"(present: {sorted(self.present())}); render them (data_gen) or pick another method")
+
+    # -- conveniences ------------------------------------------------------------------------------
+    def present(self) -> frozenset[str]:
+        return frozenset(f for f in ALL_FIELDS if getattr(self, f) is not None)
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        """Pixel grid (leading batch/time axes included, channels excluded)."""
+        return tuple(self.color.shape[:-1])
+
+    def replace(self, **changes: Any) -> "Buffers":
+        return dataclasses.replace(self, **changes)
+
+    def only(self, names: Iterable[str]) -> "Buffers":
+        """A copy keeping ``color`` and the given buffers, every other one set to ``None``."""
+        keep = set(names) | {"color"}
+        return Buffers(**{f: (getattr(self, f) if f in keep else None) for f in ALL_FIELDS})
+
+    def astype(self, dtype: Any) -> "Buffers":
+        return jax.tree_util.tree_map(lambda a: a.astype(dtype) if hasattr(a, "astype") else a, self)
+
+    def to_numpy(self) -> "Buffers":
+        return jax.tree_util.tree_map(np.asarray, self)
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> "Buffers":
+        unknown = sorted(set(data) - set(ALL_FIELDS))
+        if unknown:
+            raise BuffersError(f"unknown buffer name(s) {unknown}; known: {list(ALL_FIELDS)}")
+        return cls(**dict(data))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {f: getattr(self, f) for f in ALL_FIELDS if getattr(self, f) is not None}
+
+
+jax.tree_util.register_dataclass(Buffers, data_fields=list(ALL_FIELDS), meta_fields=[])
+
+
+def stack(frames: Iterable[Buffers]) -> Buffers:
+    """Stack frames with identical present buffers along a new leading axis."""
+    frames = list(frames)
+    if not frames:
+        raise BuffersError("stack: no frames given")
+    first = frames[0].present()
+    for i, f in enumerate(frames[1:], 1):
+        if f.present() != first:
+            raise BuffersError(
+                f"stack: frame {i} has buffers {sorted(f.present())} but frame 0 has {sorted(first)}")
+    return jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *frames)

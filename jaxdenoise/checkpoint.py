@@ -1,0 +1,110 @@
+"""Parameters on disk: a flat ``.npz`` of the params pytree plus ``config.json`` (never pickle).
+
+Keys in the ``.npz`` are the '/'-joined dict path of each leaf; params are nested dicts (and
+lists/tuples, stored with integer keys marked ``#i``) of arrays, as every method's ``init`` returns.
+Both files are written atomically (`fsutil.atomic_path`).
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .fsutil import atomic_path, write_json
+
+PARAMS_FILE = "params.npz"
+CONFIG_FILE = "config.json"
+
+
+def flatten(tree: Any, prefix: str = "") -> dict[str, np.ndarray]:
+    out: dict[str, np.ndarray] = {}
+    if isinstance(tree, dict):
+        for k, v in tree.items():
+            if "/" in str(k) or str(k).startswith("#"):
+                raise ValueError(f"param key {k!r} may not contain '/' or start with '#'")
+            out.update(flatten(v, f"{prefix}{k}/"))
+    elif isinstance(tree, (list, tuple)):
+        for i, v in enumerate(tree):
+            out.update(flatten(v, f"{prefix}#{i}/"))
+    elif tree is None:
+        pass
+    else:
+        out[prefix.rstrip("/")] = np.asarray(tree)
+    return out
+
+
+def unflatten(flat: dict[str, np.ndarray]) -> Any:
+    root: dict = {}
+    for key, value in flat.items():
+        node = root
+        parts = key.split("/")
+        for p in parts[:-1]:
+            node = node.setdefault(p, {})
+        node[parts[-1]] = value
+    return _lists(root)
+
+
+def _lists(node: Any) -> Any:
+    if not isinstance(node, dict):
+        return node
+    node = {k: _lists(v) for k, v in node.items()}
+    if node and all(k.startswith("#") for k in node):
+        return [node[f"#{i}"] for i in range(len(node))]
+    return node
+
+
+def config_to_dict(config: Any) -> dict:
+    if dataclasses.is_dataclass(config):
+        return {f.name: _plain(getattr(config, f.name)) for f in dataclasses.fields(config)}
+    return dict(config)
+
+
+def _plain(v: Any) -> Any:
+    if isinstance(v, tuple):
+        return [_plain(x) for x in v]
+    return v
+
+
+def config_from_dict(cls: type, data: dict) -> Any:
+    """Build ``cls`` (a frozen dataclass) from ``data``; lists become tuples; unknown keys fail."""
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise ValueError(f"config for {cls.__module__}.{cls.__name__} has unknown key(s) {unknown}")
+    return cls(**{k: (tuple(_tuples(v)) if isinstance(v, list) else v) for k, v in data.items()})
+
+
+def _tuples(v: list) -> list:
+    return [tuple(_tuples(x)) if isinstance(x, list) else x for x in v]
+
+
+def save(directory: str | os.PathLike, params: Any, config: Any = None, extra: dict | None = None) -> Path:
+    """Write ``params.npz`` and ``config.json`` into ``directory`` atomically; returns the directory."""
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    flat = flatten(params)
+    with atomic_path(directory / PARAMS_FILE) as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **flat)
+    meta = {"config": config_to_dict(config) if config is not None else {}}
+    if extra:
+        meta.update(extra)
+    write_json(directory / CONFIG_FILE, meta)
+    return directory
+
+
+def load(directory: str | os.PathLike) -> tuple[Any, dict]:
+    """Read ``params.npz`` and ``config.json``; returns (params pytree of numpy arrays, metadata)."""
+    directory = Path(directory)
+    pfile = directory / PARAMS_FILE
+    if not pfile.is_file():
+        raise FileNotFoundError(f"{pfile}: no parameter file (expected {PARAMS_FILE} beside {CONFIG_FILE})")
+    with np.load(pfile, allow_pickle=False) as data:
+        params = unflatten({k: data[k] for k in data.files})
+    cfile = directory / CONFIG_FILE
+    meta = json.loads(cfile.read_text()) if cfile.is_file() else {}
+    return params, meta

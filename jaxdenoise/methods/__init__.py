@@ -1,0 +1,137 @@
+"""The method registry (DESIGN.md "Methods").
+
+Every method lives in ``jaxdenoise/methods/<module>.py`` and exposes:
+
+- ``Config``: frozen dataclass of hyperparameters (paper defaults, cited);
+- ``needs(config) -> frozenset[str]``: the `Buffers` fields it reads (``color`` included), i.e.
+  what a renderer should produce for it;
+- optionally ``required(config) -> frozenset[str]``: the subset it cannot run without (default: all
+  of ``needs``); the others are used when the frame has them and left out otherwise;
+- ``init(key, config) -> params`` (a plain pytree; ``{}`` for methods without parameters);
+- ``apply(params, buffers, config) -> image`` (pure and jittable unless ``JITTABLE = False``);
+- ``loss(params, batch, config) -> scalar`` when trainable;
+- recurrent ones add ``init_state(buffers, config)`` and ``step(params, state, buffers, config)``.
+
+Optional module attributes: ``JITTABLE`` (default True; False for foreign code such as OIDN),
+``requirements() -> str | None`` (a reason the method cannot run here, e.g. a missing package),
+``WEIGHTS`` (name of the shipped weights folder under ``jaxdenoise/weights/``).
+
+A registered name maps to a module plus config overrides, so one module serves variants
+(``lbf`` / ``lbf-nlm``, ``poisson-l2`` / ``poisson-l1``).
+"""
+from __future__ import annotations
+
+import dataclasses
+import importlib
+from pathlib import Path
+from types import ModuleType
+from typing import Any, Callable
+
+# name -> (module, config overrides). Order is the order of tables and plots.
+_REGISTRY: dict[str, tuple[str, dict[str, Any]]] = {
+    "input": ("jaxdenoise.methods.input", {}),
+    "gaussian": ("jaxdenoise.methods.gaussian", {}),
+    "oidn": ("jaxdenoise.methods.oidn", {}),
+}
+
+WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"
+
+
+class MethodError(ValueError):
+    """Unknown method, unavailable method, or parameters that cannot be used."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Method:
+    """A registered method: its module and its resolved config."""
+
+    name: str
+    module: ModuleType
+    config: Any
+
+    @property
+    def jittable(self) -> bool:
+        return getattr(self.module, "JITTABLE", True)
+
+    @property
+    def trainable(self) -> bool:
+        return hasattr(self.module, "loss")
+
+    @property
+    def recurrent(self) -> bool:
+        return hasattr(self.module, "step")
+
+    def needs(self) -> frozenset[str]:
+        return frozenset(self.module.needs(self.config)) | {"color"}
+
+    def required(self) -> frozenset[str]:
+        fn = getattr(self.module, "required", None)
+        return (frozenset(fn(self.config)) | {"color"}) if fn else self.needs()
+
+    def requirements(self) -> str | None:
+        """None if the method can run here, else the reason it cannot."""
+        fn = getattr(self.module, "requirements", None)
+        return fn() if fn else None
+
+    def init(self, key) -> Any:
+        return self.module.init(key, self.config)
+
+    def apply(self, params: Any, buffers) -> Any:
+        return self.module.apply(params, buffers, self.config)
+
+    def loss(self, params: Any, batch) -> Any:
+        if not self.trainable:
+            raise MethodError(f"method '{self.name}' has no parameters to train")
+        return self.module.loss(params, batch, self.config)
+
+    @property
+    def weights_dir(self) -> Path | None:
+        name = getattr(self.module, "WEIGHTS", None)
+        if name is None:
+            return None
+        if callable(name):
+            name = name(self.config)
+        return WEIGHTS_DIR / name
+
+    def with_config(self, **overrides: Any) -> "Method":
+        return dataclasses.replace(self, config=dataclasses.replace(self.config, **overrides))
+
+
+def register(name: str, module: str, **config_overrides: Any) -> None:
+    """Register ``name`` as ``module`` (import path) with config overrides; replaces an earlier one."""
+    _REGISTRY[name] = (module, dict(config_overrides))
+
+
+def names() -> list[str]:
+    """Every registered method name, in table order."""
+    return list(_REGISTRY)
+
+
+def get(name: str, config: Any = None, **overrides: Any) -> Method:
+    """Resolve a registered method; ``config`` replaces the default, ``overrides`` adjust fields."""
+    if name not in _REGISTRY:
+        raise MethodError(f"unknown method '{name}'; registered: {', '.join(_REGISTRY)}")
+    modname, defaults = _REGISTRY[name]
+    module = importlib.import_module(modname)
+    if config is None:
+        config = module.Config(**defaults)
+    elif not isinstance(config, module.Config):
+        raise MethodError(f"method '{name}' expects a {modname}.Config, got {type(config).__name__}")
+    if overrides:
+        config = dataclasses.replace(config, **overrides)
+    return Method(name=name, module=module, config=config)
+
+
+def available() -> dict[str, str | None]:
+    """name -> None if it can run here, else the reason it cannot."""
+    return {n: get(n).requirements() for n in names()}
+
+
+def parse_list(spec: str, *, allow: Callable[[str], bool] | None = None) -> list[str]:
+    """Parse a comma-separated method list ('all' = every available one); unknown names fail."""
+    if spec.strip() == "all":
+        return [n for n, why in available().items() if why is None and (allow is None or allow(n))]
+    out = [s.strip() for s in spec.split(",") if s.strip()]
+    for n in out:
+        get(n)  # raises for unknown names
+    return out

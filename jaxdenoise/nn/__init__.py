@@ -1,0 +1,151 @@
+"""Stax-style layers over plain-pytree parameters (DESIGN.md "Layers").
+
+Every constructor returns a pair ``(init, apply)``:
+
+- ``init(key, in_shape) -> (out_shape, params)``: ``in_shape`` is a tuple whose last entry is the
+  channel count; leading entries (batch, height, width, ...) pass through and may be ``-1``.
+- ``apply(params, x) -> y``: pure and jittable; ``x`` has any leading axes and channels last.
+
+Params are plain pytrees (dicts of arrays, lists for `serial`), so they go straight through
+`jaxdenoise.checkpoint.save` / ``load`` and any pure optimizer in `jaxdenoise.solvers`.
+
+Layers here: `Dense` (Kalantari 2015 Eq. 7: ``a = f(W a_prev + w0)``), the activations `Sigmoid`,
+`Softplus` (Kalantari 2015 Sec. 4.1), `Relu`, `Identity`, and the combinator `serial`. Later
+methods add convolutions in sibling modules and re-export them here.
+"""
+from __future__ import annotations
+
+from typing import Any, Callable, Sequence
+
+import jax
+import jax.numpy as jnp
+
+__all__ = ["Dense", "Sigmoid", "Softplus", "Relu", "Identity", "Elementwise", "serial", "Layer",
+           "uniform_init", "glorot_uniform_init"]
+
+Layer = tuple[Callable[..., Any], Callable[..., Any]]
+Initializer = Callable[[jax.Array, tuple[int, ...]], jax.Array]
+
+
+def uniform_init(scale: float = 0.5) -> Initializer:
+    """Uniform in [-scale, scale]; Kalantari 2015 Sec. 3.1 draws weights in [-0.5, 0.5]."""
+    if not scale > 0:
+        raise ValueError(f"uniform_init: scale must be > 0, got {scale}")
+
+    def init(key: jax.Array, shape: tuple[int, ...]) -> jax.Array:
+        return jax.random.uniform(key, shape, jnp.float32, -scale, scale)
+
+    return init
+
+
+def glorot_uniform_init() -> Initializer:
+    """Glorot/Xavier uniform over the last two axes (fan_in, fan_out)."""
+
+    def init(key: jax.Array, shape: tuple[int, ...]) -> jax.Array:
+        fan_in, fan_out = shape[-2], shape[-1]
+        limit = (6.0 / (fan_in + fan_out)) ** 0.5
+        return jax.random.uniform(key, shape, jnp.float32, -limit, limit)
+
+    return init
+
+
+def _check_shape(name: str, in_shape: Sequence[int]) -> tuple[int, ...]:
+    in_shape = tuple(int(s) for s in in_shape)
+    if len(in_shape) < 1 or in_shape[-1] <= 0:
+        raise ValueError(f"{name}: in_shape must end with a positive channel count, got {in_shape}")
+    return in_shape
+
+
+def Dense(out_dim: int, *, w_init: Initializer | None = None, b_init: Initializer | None = None) -> Layer:
+    """Fully connected layer on the last axis: ``y = x @ w + b`` (Kalantari 2015 Eq. 7 without f).
+
+    Params ``{"w": (in, out), "b": (out,)}``. Defaults: Glorot-uniform weights, zero bias.
+    """
+    if int(out_dim) <= 0:
+        raise ValueError(f"Dense: out_dim must be a positive integer, got {out_dim}")
+    out_dim = int(out_dim)
+    w_init = w_init or glorot_uniform_init()
+
+    def init(key: jax.Array, in_shape: Sequence[int]):
+        in_shape = _check_shape("Dense", in_shape)
+        kw, kb = jax.random.split(key)
+        w = w_init(kw, (in_shape[-1], out_dim))
+        b = b_init(kb, (out_dim,)) if b_init is not None else jnp.zeros((out_dim,), jnp.float32)
+        return in_shape[:-1] + (out_dim,), {"w": w, "b": b}
+
+    def apply(params: dict, x: jax.Array) -> jax.Array:
+        w = params["w"]
+        if x.shape[-1] != w.shape[0]:
+            raise ValueError(f"Dense: input has {x.shape[-1]} channels, the layer expects {w.shape[0]}")
+        return jnp.matmul(x, w.astype(x.dtype)) + params["b"].astype(x.dtype)
+
+    return init, apply
+
+
+def Elementwise(fn: Callable[[jax.Array], jax.Array]) -> Layer:
+    """A parameter-free layer applying ``fn`` to every element (params ``{}``)."""
+
+    def init(key: jax.Array, in_shape: Sequence[int]):
+        return tuple(in_shape), {}
+
+    def apply(params: dict, x: jax.Array) -> jax.Array:
+        return fn(x)
+
+    return init, apply
+
+
+# Activations are constructors returning layers (stax style: call them, e.g. ``Sigmoid()``).
+def Sigmoid() -> Layer:
+    """``1 / (1 + exp(-x))`` (Kalantari 2015 Sec. 4.1, hidden layer)."""
+    return Elementwise(jax.nn.sigmoid)
+
+
+def Softplus() -> Layer:
+    """``log(1 + exp(x))``, always positive (Kalantari 2015 Sec. 4.1, output layer).
+
+    `jax.nn.softplus` is the overflow-safe form ``logaddexp(x, 0)``: no ``exp`` of large x.
+    """
+    return Elementwise(jax.nn.softplus)
+
+
+def Relu() -> Layer:
+    return Elementwise(jax.nn.relu)
+
+
+def Identity() -> Layer:
+    return Elementwise(lambda x: x)
+
+
+def serial(*layers: Layer) -> Layer:
+    """Compose layers in order.
+
+    Params are a dict keyed by the layer index as a string (``{"0": ..., "2": ...}``), holding only
+    layers that have parameters: parameter-free layers (activations) are left out, so the pytree
+    round-trips unchanged through `jaxdenoise.checkpoint` (which stores leaves only and would
+    otherwise lose empty entries).
+    """
+    if not layers:
+        raise ValueError("serial: needs at least one layer")
+    inits, applies = zip(*layers)
+
+    def init(key: jax.Array, in_shape: Sequence[int]):
+        params = {}
+        shape = tuple(in_shape)
+        for i, layer_init in enumerate(inits):
+            key, sub = jax.random.split(key)
+            shape, p = layer_init(sub, shape)
+            if jax.tree_util.tree_leaves(p):
+                params[str(i)] = p
+        return shape, params
+
+    def apply(params: dict, x: jax.Array) -> jax.Array:
+        if not isinstance(params, dict):
+            raise ValueError(f"serial: params must be a dict keyed by layer index, got {type(params).__name__}")
+        extra = sorted(set(params) - {str(i) for i in range(len(applies))})
+        if extra:
+            raise ValueError(f"serial: params for unknown layer(s) {extra}; the model has {len(applies)} layers")
+        for i, layer_apply in enumerate(applies):
+            x = layer_apply(params.get(str(i), {}), x)
+        return x
+
+    return init, apply

@@ -1,0 +1,48 @@
+"""Shared fixtures: small synthetic frames with every buffer, written through the real EXR path."""
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+import numpy as np
+import pytest
+
+from jaxdenoise.buffers import CHANNELS, Buffers
+
+
+def synthetic_frame(h: int = 8, w: int = 10, seed: int = 0, spp: int | None = 4,
+                    fields=tuple(CHANNELS)) -> Buffers:
+    """A frame with plausible values in every requested buffer (radiance >= 0, normals unit)."""
+    rng = np.random.default_rng(seed)
+    out = {}
+    for f in fields:
+        c = len(CHANNELS[f])
+        if f == "normal":
+            n = rng.normal(size=(h, w, 3))
+            v = n / np.linalg.norm(n, axis=-1, keepdims=True)
+        elif f in ("dx", "dy", "position"):
+            v = rng.normal(size=(h, w, c))
+        elif f == "depth":
+            v = rng.uniform(0.5, 10.0, size=(h, w, 1))
+        else:
+            v = rng.uniform(0.0, 1.0, size=(h, w, c))
+        out[f] = v.astype(np.float32)
+    if spp is not None:
+        out["spp"] = np.float32(spp)
+    return Buffers(**out)
+
+
+@pytest.fixture
+def frame() -> Buffers:
+    return synthetic_frame()
+
+
+def make_shot(folder, ref: np.ndarray, renders: dict[int, Buffers]) -> None:
+    """Write one bench shot: reference.exr and spp{spp:04d}_00.exr per render."""
+    from jaxdenoise.io import write_buffers, write_image
+
+    write_image(folder / "reference.exr", ref)
+    for spp, b in renders.items():
+        write_buffers(folder / f"spp{spp:04d}_00.exr", b.replace(spp=np.float32(spp)),
+                      {"render_seconds": 0.01 * spp})

@@ -1,0 +1,72 @@
+import jax
+import numpy as np
+import pytest
+
+import jaxdenoise as jd
+from jaxdenoise.api import prepare
+from jaxdenoise.buffers import BuffersError
+from jaxdenoise.methods import MethodError, get
+
+from conftest import synthetic_frame
+
+
+def test_denoise_and_load_agree():
+    b = synthetic_frame(h=16, w=12)
+    a = jd.denoise(b, method="gaussian")
+    infer = jd.load("gaussian")
+    np.testing.assert_allclose(np.asarray(infer(b)), a, rtol=0, atol=0)  # same compiled function
+
+
+def test_jit_and_nonjit_agree():
+    b = synthetic_frame(h=16, w=12)
+    m = get("gaussian")
+    eager = np.asarray(m.apply({}, b))
+    jitted = np.asarray(jax.jit(lambda p, x: m.apply(p, x))({}, b))
+    np.testing.assert_allclose(jitted, eager, rtol=1e-6, atol=1e-7)
+
+
+def test_input_is_identity_and_gaussian_smooths():
+    b = synthetic_frame(h=16, w=16)
+    np.testing.assert_array_equal(jd.denoise(b, method="input"), b.color)
+    out = jd.denoise(b, method="gaussian")
+    assert out.shape == b.color.shape and out.std() < 0.8 * b.color.std()  # blur lowers variance
+
+
+def test_prepare_feeds_only_what_method_reads():
+    b = synthetic_frame()
+    assert prepare(get("gaussian"), b).present() == {"color"}
+    assert prepare(get("oidn"), b).present() == {"color", "albedo", "normal"}
+    assert prepare(get("oidn"), b.only(())).present() == {"color"}  # OIDN runs on colour alone
+
+
+def test_unknown_method_and_nonfinite_input():
+    b = synthetic_frame()
+    with pytest.raises(MethodError, match="unknown method 'nope'; registered: input, gaussian"):
+        jd.denoise(b, method="nope")
+    c = b.color.copy()
+    c[0, 0, 0] = np.nan
+    with pytest.raises(BuffersError, match=r"buffer 'color' has 1 NaN/Inf value\(s\)"):
+        jd.denoise(b.replace(color=c), method="gaussian")
+
+
+def test_oidn_runs_with_and_without_aux():
+    b = synthetic_frame(h=16, w=16)
+    full = jd.denoise(b, method="oidn")
+    plain = jd.denoise(b.only(()), method="oidn")
+    assert full.shape == plain.shape == b.color.shape
+    assert np.isfinite(full).all() and not np.allclose(full, plain, atol=1e-6)  # aux changes the result
+
+
+def test_oidn_missing_package_is_clear(monkeypatch):
+    import builtins
+
+    real = builtins.__import__
+
+    def fake(name, *a, **k):
+        if name == "pyoidn":
+            raise ImportError("No module named 'pyoidn'")
+        return real(name, *a, **k)
+
+    monkeypatch.setattr(builtins, "__import__", fake)
+    with pytest.raises(MethodError, match=r"needs the pyoidn package \(pip install -e '\.\[oidn\]'\)"):
+        jd.denoise(synthetic_frame(), method="oidn")
