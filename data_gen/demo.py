@@ -41,22 +41,30 @@ def run_demo(args: argparse.Namespace) -> int:
     methods = parse_list(args.methods)
     spp = tuple(int(s) for s in args.spp.split(","))
     shot_dir = Path(args.cache) / f"default_{args.size}px_ref{args.ref_spp}"
+    before = _snapshot(shot_dir)
     t_render = time.perf_counter()
-    record = data_gen.render_shot(data_gen.default_scene(resolution=args.size), shot_dir, spp=spp,
-                                  ref_spp=args.ref_spp, methods=methods, seed=0, progress=not args.quiet)
+    record = data_gen.render_shot(data_gen.default_scene(width=args.size, height=args.size), shot_dir,
+                                  spp=spp, ref_spp=args.ref_spp, methods=methods, seed=0,
+                                  progress=not args.quiet)
     render_s = time.perf_counter() - t_render
+    rendered = sorted(k for k, v in _snapshot(shot_dir).items() if before.get(k) != v)
     report = bench.run(shot_dir, methods, args.out, runs=args.runs, progress=not args.quiet)
     total = time.perf_counter() - t0
     write_json(Path(args.out) / "demo.json", {
         "variant": variant, "scene": "data_gen.default_scene", "size": args.size, "spp": list(spp),
         "ref_spp": args.ref_spp, "methods": methods, "cache": str(shot_dir), "render_seconds": render_s,
-        "total_seconds": total, "rendered": record.get("rendered", []), "left_out": record.get("left_out", {}),
+        "total_seconds": total, "rendered_now": rendered, "left_out": record.get("left_out", {}),
     })
     print(bench.markdown_table(bench.summarize(report["records"])))
     for s in report["skipped"]:
         print(f"not run: {s['method']}: {s['reason']}")
     print(f"plot: {Path(args.out) / 'error_vs_time.png'}  table: {Path(args.out) / 'results.md'}")
     print(f"demo: {variant}, {args.size}x{args.size}, spp {list(spp)}, reference {args.ref_spp} spp; "
-          f"render {render_s:.1f} s ({'cached' if render_s < 1.0 else 'rendered'}), "
+          f"render {render_s:.1f} s ({f'{len(rendered)} file(s) rendered' if rendered else 'all cached'}), "
           f"total {total:.1f} s; {bench.one_line(report)}")
     return 0
+
+
+def _snapshot(folder: Path) -> dict[str, float]:
+    """EXR name -> modification time, to tell what a call rendered from what was cached."""
+    return {p.name: p.stat().st_mtime_ns for p in folder.glob("*.exr")} if folder.is_dir() else {}

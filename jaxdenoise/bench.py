@@ -13,6 +13,7 @@ while it runs, sampled every millisecond (``memory_source`` says which).
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import statistics
 import threading
@@ -31,6 +32,7 @@ from .io import read_buffers, read_image
 from .methods import Method, MethodError
 
 REFERENCE = "reference.exr"
+SHOT_RECORD = "shot.json"  # data_gen's per-shot manifest (render timings)
 MIN_RUNS = 5
 
 
@@ -53,7 +55,12 @@ class Shot:
 
 
 def discover(data_dir: str | os.PathLike) -> list[Shot]:
-    """Every shot (folder with ``reference.exr``) under ``data_dir``, sorted by path."""
+    """Every shot (folder with ``reference.exr``) under ``data_dir``, sorted by path.
+
+    A render's time comes from its ``render_seconds`` header attribute or, for data_gen output
+    (whose EXRs keep no timings so they stay byte-identical across runs), from the ``seconds`` of
+    its entry in the shot's ``shot.json``; without either it is unknown (None).
+    """
     from .io import read_header
 
     root = Path(data_dir)
@@ -61,12 +68,20 @@ def discover(data_dir: str | os.PathLike) -> list[Shot]:
         raise FileNotFoundError(f"{root}: not a folder")
     shots = []
     for ref in sorted(root.rglob(REFERENCE)):
+        manifest = ref.parent / SHOT_RECORD
+        timings = {}
+        if manifest.is_file():
+            try:
+                files = json.loads(manifest.read_text()).get("files", {})
+                timings = {k: v.get("seconds") for k, v in files.items() if isinstance(v, dict)}
+            except (json.JSONDecodeError, AttributeError) as e:
+                raise ValueError(f"{manifest}: not a valid shot record ({e})") from None
         renders = []
         for p in sorted(ref.parent.glob("*.exr")):
             if p.name == REFERENCE or p.name.startswith("."):
                 continue
             h = read_header(p)
-            rs = h.get("render_seconds")
+            rs = h.get("render_seconds", timings.get(p.name))
             renders.append(Render(p, h.get("spp"), float(rs) if rs is not None else None))
         shots.append(Shot(ref.parent, ref, tuple(renders)))
     if not shots:
@@ -299,6 +314,11 @@ def plot(rows: list[dict], path: str | os.PathLike) -> Path:
                 ax.annotate(f"{r['spp']}", (x, y), textcoords="offset points", xytext=(3, 3), fontsize=6)
     ax.set_xscale("log")
     ax.set_yscale("log")
+    from matplotlib.ticker import LogFormatter
+
+    for axis in (ax.xaxis, ax.yaxis):  # plain numbers, also on minor ticks of short decades
+        axis.set_major_formatter(LogFormatter(labelOnlyBase=False, minor_thresholds=(2, 0.4)))
+        axis.set_minor_formatter(LogFormatter(labelOnlyBase=False, minor_thresholds=(2, 0.4)))
     ax.set_xlabel("render + denoise time (s)" if total_time else "denoise time (s, median)")
     ax.set_ylabel("RelMSE")
     ax.grid(True, which="both", alpha=0.3)

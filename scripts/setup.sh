@@ -8,8 +8,11 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 have_llvm() {
-  ls /usr/lib/x86_64-linux-gnu/libLLVM-1[6-9]*.so* /usr/lib/x86_64-linux-gnu/libLLVM-[2-9][0-9]*.so* \
-     /usr/lib/llvm-1[6-9]/lib/libLLVM*.so* /usr/lib/llvm-[2-9][0-9]/lib/libLLVM*.so* >/dev/null 2>&1
+  local f
+  for f in /usr/lib/x86_64-linux-gnu/libLLVM-*.so* /usr/lib/llvm-*/lib/libLLVM-*.so*; do
+    [[ -e "$f" && "$f" =~ libLLVM-([0-9]+) ]] && (( BASH_REMATCH[1] >= 16 )) && return 0
+  done
+  return 1
 }
 
 if ! have_llvm; then
