@@ -1,0 +1,28 @@
+"""Pure image filters (DESIGN.md "Layout": filters/), after Kalantari, Bako & Sen 2015.
+
+All filters take and return ``(H, W, C)`` float arrays, accept scalar or per-pixel ``(H, W)``
+parameters, are differentiable in every continuous parameter, keep static sizes (``radius``,
+``patch_radius``) keyword-only, and never materialize an ``H x W x window^2`` weight tensor.
+See each module's docstring for the exact equations and edge handling.
+"""
+from ._common import FilterError
+from .bilateral import (DELTA, ZETA, bilateral, cross_bilateral, drop_constant_features,
+                        spatiotemporal_cross_bilateral)
+from .gaussian import gaussian, gaussian_kernel_1d
+from .nlm import cross_nlm, prefilter_features
+from .spikes import remove_spikes
+
+__all__ = [
+    "DELTA",
+    "FilterError",
+    "ZETA",
+    "bilateral",
+    "cross_bilateral",
+    "cross_nlm",
+    "drop_constant_features",
+    "gaussian",
+    "gaussian_kernel_1d",
+    "prefilter_features",
+    "remove_spikes",
+    "spatiotemporal_cross_bilateral",
+]

@@ -1,0 +1,98 @@
+"""Gaussian blur: the baseline of every filter comparison (issue 4, item 1).
+
+``gaussian(image, sigma, *, radius=None) -> image``
+
+- ``image``: ``(H, W, C)`` float array (float16/bfloat16 are computed in float32 and cast back).
+- ``sigma``: standard deviation in pixels (differentiable; a traced value needs an explicit
+  ``radius``). ``sigma -> 0`` gives the identity exactly. A scalar runs the separable path below;
+  a per-pixel ``(H, W)`` / ``(H, W, 1)`` map (each output pixel with its own kernel, which is not
+  separable) runs the window engine of the bilateral filters with ``lambda = 1 / (2 sigma^2)``.
+- ``radius``: keyword-only, static; the window is ``(2 radius + 1)^2``. Default ``ceil(3 sigma)``
+  (needs a concrete ``sigma``).
+
+Separable: one horizontal and one vertical pass of shifted-slice sums (planar layout) with the
+unnormalized kernel ``exp(-d^2 / (2 sigma^2))`` (centre weight 1).
+
+Edge handling: pixels outside the image get zero weight and each output pixel is divided by the
+sum of the weights that fell inside the image, i.e. the kernel is renormalized at the border (no
+padding values are invented, and a constant image stays constant up to the border). Because the
+centre weight is 1 and the in-image region is a rectangle, the normalizer is the product of the
+two 1-D normalizers, which is >= 1, so the division is always safe.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._common import FilterError, as_image, as_param, check_radius, compute_dtype, is_concrete
+from ._window import from_planar, to_planar
+from .bilateral import _cross_sums, _prepare  # per-pixel sigma: the window engine
+
+# Smallest sigma^2 used in the kernel exponent. Below it every off-centre weight underflows to
+# exactly 0 (d^2 >= 1), so clamping changes nothing but avoids 0/0 at sigma = 0.
+_MIN_SIGMA2 = 1e-12
+
+
+def gaussian_kernel_1d(sigma: Any, radius: int, dtype: Any = jnp.float32) -> jax.Array:
+    """Unnormalized 1-D Gaussian taps ``exp(-d^2 / (2 sigma^2))`` for ``d = -radius..radius``."""
+    d = jnp.arange(-radius, radius + 1, dtype=dtype)
+    s2 = jnp.maximum(jnp.asarray(sigma, dtype) ** 2, _MIN_SIGMA2)  # guard: sigma = 0 -> identity
+    return jnp.exp(-(d * d) / (2.0 * s2))
+
+
+def _correlate(x: jax.Array, taps: jax.Array, axis: int) -> jax.Array:
+    """Zero-padded 1-D correlation of a planar (C, H, W) array along ``axis`` (1 = rows, 2 = columns).
+
+    A sum of ``2r + 1`` shifted slices, which XLA fuses into one pass; measured 9x less CPU time than
+    a depthwise ``conv_general_dilated`` for a 55-tap kernel on a 1200 x 800 RGB frame.
+    """
+    k = taps.shape[0]
+    r = (k - 1) // 2
+    widths = [(0, 0)] * 3
+    widths[axis] = (r, r)
+    xp = jnp.pad(x, widths)
+    n = x.shape[axis]
+    out = None
+    for i in range(k):
+        term = jax.lax.slice_in_dim(xp, i, i + n, axis=axis) * taps[i]
+        out = term if out is None else out + term
+    return out
+
+
+def gaussian(image: Any, sigma: Any, *, radius: int | None = None) -> jax.Array:
+    """Separable Gaussian blur of an ``(H, W, C)`` image with border renormalization (module docstring)."""
+    img = as_image(image, "image")
+    if is_concrete(sigma):
+        s = np.asarray(sigma, np.float64)
+        if not np.all(np.isfinite(s)) or np.any(s < 0):
+            raise FilterError("argument 'sigma' has non-finite or negative values; expected finite values >= 0")
+    if radius is None:
+        if not is_concrete(sigma):
+            raise FilterError("argument 'radius' is None but 'sigma' is traced; pass radius= (static)")
+        radius = int(math.ceil(3.0 * float(np.max(np.asarray(sigma)))))
+    radius = check_radius(radius)
+    if np.ndim(sigma) != 0:
+        sig = as_param(sigma, "sigma", img.shape[:2])
+        dt = compute_dtype(img, sig)
+        # lambda = 1/(2 sigma^2); the floor keeps sigma = 0 finite (off-centre weights underflow to 0)
+        lam = 0.5 / jnp.maximum(sig.astype(dt) ** 2, _MIN_SIGMA2)
+        centre, lams = _prepare(img, None, [], [], lam, None, [], img.shape[:2], dt)
+        num, den = _cross_sums(centre, [{"color": centre["color"]}], lams, radius=radius, dt_weights=[None])
+        out_dtype = img.dtype if jnp.issubdtype(img.dtype, jnp.floating) else jnp.float32
+        return from_planar(num / den).astype(out_dtype)  # den >= 1 (centre weight 1)
+    out_dtype = img.dtype if jnp.issubdtype(img.dtype, jnp.floating) else jnp.float32
+    dt = compute_dtype(img, jnp.asarray(sigma))
+    x = img.astype(dt)
+    if radius == 0:
+        return x.astype(out_dtype)
+    taps = gaussian_kernel_1d(sigma, radius, dt)
+    h, w = x.shape[:2]
+    num = _correlate(_correlate(to_planar(x), taps, 2), taps, 1)
+    # The in-image region is a rectangle, so the normalizer is the outer product of the 1-D ones;
+    # each is >= 1 because the centre tap is 1 (module docstring).
+    den = _correlate(jnp.ones((1, h, 1), dt), taps, 1) * _correlate(jnp.ones((1, 1, w), dt), taps, 2)
+    return from_planar(num / den).astype(out_dtype)

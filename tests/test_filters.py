@@ -1,0 +1,438 @@
+"""Tests of jaxdenoise.filters: brute-force NumPy references on 8x8 inputs, properties, gradients,
+extreme inputs and argument errors. Tiny sizes and radii keep the number and cost of jit compiles
+low (the whole file runs in well under a minute on 2 cores)."""
+from __future__ import annotations
+
+import jax
+import numpy as np
+import pytest
+from jax.test_util import check_grads as _check_grads
+
+from jaxdenoise.filters import (DELTA, ZETA, FilterError, bilateral, cross_bilateral, cross_nlm,
+                                drop_constant_features, gaussian, prefilter_features, remove_spikes,
+                                spatiotemporal_cross_bilateral)
+
+H, W = 8, 8
+
+
+def rng(seed=0):
+    return np.random.default_rng(seed)
+
+
+def frame(seed=0, h=H, w=W):
+    """A random frame: colour, colour variance, two features (3 and 1 channels) and their variances."""
+    g = rng(seed)
+    c = g.random((h, w, 3)).astype(np.float32)
+    v = (0.05 * g.random((h, w, 3))).astype(np.float32)
+    f = [g.random((h, w, 3)).astype(np.float32), g.random((h, w, 1)).astype(np.float32)]
+    fv = [(0.01 * g.random((h, w))).astype(np.float32), None]
+    return c, v, f, fv
+
+
+def _map(x, h, w):
+    x = np.asarray(x, np.float64)
+    return np.broadcast_to(x.reshape(x.shape[:2]) if x.ndim else x, (h, w))
+
+
+# ----------------------------------------------------------------------------------------------
+# brute-force NumPy references (direct transcriptions of the equations, one pixel pair at a time)
+
+
+def ref_cross_bilateral(c, v, feats, fvars, ls, lc, lfs, r, frames=None, lt=0.0):
+    """Kalantari 2015 Eq. 1-2, 11-12 with lambda = 1/(2 theta^2); ``frames``: (T, ...) volume mode."""
+    if frames is None:
+        vol = [(c, v, feats)]
+        centre = 0
+        dts = [0]
+    else:
+        vol, centre, dts = frames
+    c0, v0, f0 = vol[centre]
+    h, w = c0.shape[:2]
+    ls, lc, lt = _map(ls, h, w), _map(lc, h, w), _map(lt, h, w)
+    lfs = [_map(l, h, w) for l in lfs]
+    out = np.zeros(c0.shape)
+    for i in range(h):
+        for j in range(w):
+            num, den = np.zeros(c0.shape[-1]), 0.0
+            for (ct, vt, ft), dt in zip(vol, dts):
+                for y in range(max(0, i - r), min(h, i + r + 1)):
+                    for x in range(max(0, j - r), min(w, j + r + 1)):
+                        lw = -ls[i, j] * ((y - i) ** 2 + (x - j) ** 2) - lt[i, j] * dt ** 2
+                        if v0 is not None:
+                            lw -= lc[i, j] * np.sum((c0[i, j] - ct[y, x]) ** 2 / (v0[i, j] + vt[y, x] + ZETA))
+                        for k in range(len(f0)):
+                            var = 0.0 if fvars[k] is None else np.asarray(fvars[k]).reshape(h, w)[i, j]
+                            lw -= lfs[k][i, j] * np.sum((f0[k][i, j] - ft[k][y, x]) ** 2) / max(var, DELTA)
+                        wgt = np.exp(lw)
+                        num += wgt * ct[y, x]
+                        den += wgt
+            out[i, j] = num / den
+    return out
+
+
+def ref_bilateral(c, ls, lr, r):
+    h, w = c.shape[:2]
+    out = np.zeros(c.shape)
+    for i in range(h):
+        for j in range(w):
+            num, den = 0.0, 0.0
+            for y in range(max(0, i - r), min(h, i + r + 1)):
+                for x in range(max(0, j - r), min(w, j + r + 1)):
+                    wgt = np.exp(-ls * ((y - i) ** 2 + (x - j) ** 2) - lr * np.sum((c[i, j] - c[y, x]) ** 2))
+                    num, den = num + wgt * c[y, x], den + wgt
+            out[i, j] = num / den
+    return out
+
+
+def _patch_dist(c, v, i, j, y, x, pr, cancel):
+    h, w = c.shape[:2]
+    tot, cnt = 0.0, 0
+    for a in range(-pr, pr + 1):
+        for b in range(-pr, pr + 1):
+            p, q = (i + a, j + b), (y + a, x + b)
+            if not (0 <= p[0] < h and 0 <= p[1] < w and 0 <= q[0] < h and 0 <= q[1] < w):
+                continue
+            d2 = (c[p] - c[q]) ** 2
+            if cancel:
+                tot += np.mean((d2 - (v[p] + np.minimum(v[p], v[q]))) / (v[p] + v[q] + ZETA))
+            else:
+                tot += np.sum(d2 / (v[p] + v[q] + ZETA))
+            cnt += 1
+    d = tot / cnt
+    return max(d, 0.0) if cancel else d
+
+
+def ref_cross_nlm(c, v, feats, fvars, lp, lfs, r, pr):
+    """Appendix Eq. 16-17."""
+    h, w = c.shape[:2]
+    lp = _map(lp, h, w)
+    lfs = [_map(l, h, w) for l in lfs]
+    out = np.zeros(c.shape)
+    for i in range(h):
+        for j in range(w):
+            num, den = 0.0, 0.0
+            for y in range(max(0, i - r), min(h, i + r + 1)):
+                for x in range(max(0, j - r), min(w, j + r + 1)):
+                    lw = -lp[i, j] * _patch_dist(c, v, i, j, y, x, pr, False)
+                    for k in range(len(feats)):
+                        var = 0.0 if fvars[k] is None else np.asarray(fvars[k]).reshape(h, w)[i, j]
+                        lw -= lfs[k][i, j] * np.sum((feats[k][i, j] - feats[k][y, x]) ** 2) / max(var, DELTA)
+                    wgt = np.exp(lw)
+                    num, den = num + wgt * c[y, x], den + wgt
+            out[i, j] = num / den
+    return out
+
+
+def ref_prefilter(f, v, r, pr, lam):
+    h, w = f.shape[:2]
+    v = v.reshape(h, w, 1)
+    vb = np.broadcast_to(v, f.shape)
+    out_f, out_v = np.zeros(f.shape), np.zeros((h, w, 1))
+    for i in range(h):
+        for j in range(w):
+            nf, nv, den = 0.0, 0.0, 0.0
+            for y in range(max(0, i - r), min(h, i + r + 1)):
+                for x in range(max(0, j - r), min(w, j + r + 1)):
+                    wgt = np.exp(-lam * _patch_dist(f, vb, i, j, y, x, pr, True))
+                    nf, nv, den = nf + wgt * f[y, x], nv + wgt * v[y, x], den + wgt
+            out_f[i, j], out_v[i, j] = nf / den, nv / den
+    return out_f, out_v
+
+
+def ref_gaussian(c, sigma, r):
+    h, w = c.shape[:2]
+    out = np.zeros(c.shape)
+    for i in range(h):
+        for j in range(w):
+            num, den = 0.0, 0.0
+            for y in range(max(0, i - r), min(h, i + r + 1)):
+                for x in range(max(0, j - r), min(w, j + r + 1)):
+                    wgt = np.exp(-((y - i) ** 2 + (x - j) ** 2) / (2 * sigma ** 2))
+                    num, den = num + wgt * c[y, x], den + wgt
+            out[i, j] = num / den
+    return out
+
+
+def ref_spikes(c, n_std):
+    h, w = c.shape[:2]
+    p = np.pad(c, ((1, 1), (1, 1), (0, 0)), mode="edge")
+    out = c.astype(np.float64).copy()
+    for i in range(h):
+        for j in range(w):
+            block = p[i:i + 3, j:j + 3].reshape(9, -1).astype(np.float64)
+            if np.any(np.abs(c[i, j] - block.mean(0)) > n_std * block.std(0)):
+                out[i, j] = np.median(block, axis=0)
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# agreement with the references (tolerance: 2e-5 absolute on values in [0, 1], float32 vs float64)
+
+
+def test_gaussian_matches_reference():
+    c = frame()[0]
+    np.testing.assert_allclose(gaussian(c, 0.9, radius=2), ref_gaussian(c, 0.9, 2), atol=2e-5)
+    # per-pixel sigma (window engine): a constant map equals the separable path (tolerance 2e-6)
+    np.testing.assert_allclose(gaussian(c, np.full((H, W), 0.9, np.float32), radius=2),
+                               gaussian(c, 0.9, radius=2), atol=2e-6)
+
+
+def test_cross_bilateral_matches_reference_with_per_pixel_parameters():
+    # 8 x 12 with radius 5: 11 column offsets, so the engine's 8-offset chunks include a masked tail
+    h, w = 8, 12
+    c, v, f, fv = frame(1, h, w)
+    g = rng(2)
+    ls = 0.05
+    lc = g.random((h, w)).astype(np.float32)
+    lfs = [0.002, (0.001 * g.random((h, w, 1))).astype(np.float32)]
+    out = cross_bilateral(c, v, f, fv, ls, lc, lfs, radius=5)
+    np.testing.assert_allclose(out, ref_cross_bilateral(c, v, f, fv, ls, lc, lfs, 5), atol=2e-5)
+
+
+def test_cross_bilateral_one_channel_variance_is_eq_11():
+    c, v, f, fv = frame(3)
+    v1 = v[..., :1]
+    out = cross_bilateral(c, v1, [], [], 0.1, 0.5, [], radius=2)
+    np.testing.assert_allclose(out, ref_cross_bilateral(c, v1, [], [], 0.1, 0.5, [], 2), atol=2e-5)
+
+
+def test_bilateral_matches_reference():
+    c = frame(4)[0]
+    np.testing.assert_allclose(bilateral(c, 0.3, 4.0, radius=2), ref_bilateral(c, 0.3, 4.0, 2), atol=2e-5)
+
+
+def test_cross_nlm_matches_reference_5x5_patches():
+    c, v, f, fv = frame(5)
+    lp = rng(6).random((H, W)).astype(np.float32)
+    lfs = [0.001, 0.0005]
+    out = cross_nlm(c, v, f, fv, lp, lfs, radius=2)  # default patch_radius=2: 5x5 patches (Eq. 17)
+    np.testing.assert_allclose(out, ref_cross_nlm(c, v, f, fv, lp, lfs, 2, 2), atol=2e-5)
+
+
+def test_prefilter_matches_reference_and_uses_same_weights_for_variance():
+    g = rng(7)
+    f = g.random((H, W, 3)).astype(np.float32)
+    v = (0.1 * g.random((H, W))).astype(np.float32)
+    of, ov = prefilter_features(f, v, radius=2, patch_radius=1, lam=0.7)
+    rf, rv = ref_prefilter(f, v, 2, 1, 0.7)
+    np.testing.assert_allclose(of, rf, atol=2e-5)
+    np.testing.assert_allclose(ov, rv, atol=2e-6)
+
+
+def test_spatiotemporal_matches_reference():
+    g = rng(8)
+    t = 3
+    c = g.random((t, 6, 5, 3)).astype(np.float32)
+    v = (0.05 * g.random((t, 6, 5, 1))).astype(np.float32)
+    f = [g.random((t, 6, 5, 3)).astype(np.float32)]
+    fv = [(0.01 * g.random((t, 6, 5))).astype(np.float32)]
+    out = spatiotemporal_cross_bilateral(c, v, f, fv, 0.3, 0.4, [0.001], radius=1, lam_temporal=0.2)
+    vol = [(c[s], v[s], [f[0][s]]) for s in range(t)]
+    ref = ref_cross_bilateral(None, None, None, [fv[0][1]], 0.3, 0.4, [0.001], 1,
+                              frames=(vol, 1, [s - 1 for s in range(t)]), lt=0.2)
+    np.testing.assert_allclose(out, ref, atol=2e-5)
+
+
+def test_remove_spikes_matches_reference_and_removes_a_firefly():
+    c = frame(9)[0]
+    c[3, 4] = [1e6, 0.2, 0.3]
+    out = remove_spikes(c)
+    np.testing.assert_allclose(out, ref_spikes(c, 2.0), rtol=1e-6)
+    assert float(np.max(out)) <= 1.0, "the 1e6 firefly must be replaced by the block median (<= 1)"
+
+
+# ----------------------------------------------------------------------------------------------
+# properties
+
+
+def test_constant_in_constant_out_every_filter():
+    k = np.full((H, W, 3), 2.5, np.float32)
+    v = np.full((H, W, 3), 0.01, np.float32)
+    f, fv = frame(10)[2:]
+    outs = {
+        "gaussian": gaussian(k, 1.5, radius=3),
+        "bilateral": bilateral(k, 0.1, 1.0, radius=3),
+        "cross_bilateral": cross_bilateral(k, v, f, fv, 0.1, 1.0, [0.001, 0.002], radius=3),
+        "cross_nlm": cross_nlm(k, v, f, fv, 1.0, [0.001, 0.002], radius=2),
+        "prefilter": prefilter_features(k, v[..., 0], radius=2, patch_radius=1)[0],
+        "spikes": remove_spikes(k),
+    }
+    for name, out in outs.items():
+        np.testing.assert_allclose(out, 2.5, rtol=1e-6, err_msg=name)
+
+
+def test_spatial_sigma_to_zero_is_identity():
+    c, v, f, fv = frame(11)
+    np.testing.assert_array_equal(gaussian(c, 0.0, radius=3), c)  # exact (tolerance 0)
+    # lambda = 1/(2 sigma^2) = 1e12: every off-centre weight underflows to exactly 0 -> exact identity
+    np.testing.assert_array_equal(bilateral(c, 1e12, 0.0, radius=2), c)
+    np.testing.assert_array_equal(cross_bilateral(c, v, f, fv, 1e12, 0.0, [0.0, 0.0], radius=2), c)
+
+
+def test_weights_sum_to_one_and_output_is_convex():
+    """Filtering an all-ones image with non-constant guides returns ones (sum_j d_ij / sum_j d_ij = 1,
+    tolerance 1e-6), and filtering a random image stays within its [min, max] (tolerance 1e-6)."""
+    c, v, f, fv = frame(12)
+    ones = np.ones_like(c)
+    out = cross_bilateral(ones, v, f, fv, 0.05, 0.0, [0.001, 0.01], radius=3)
+    np.testing.assert_allclose(out, 1.0, rtol=1e-6)
+    out = cross_bilateral(c, v, f, fv, 0.05, 0.3, [0.001, 0.01], radius=3)
+    assert float(out.min()) >= float(c.min()) - 1e-6 and float(out.max()) <= float(c.max()) + 1e-6
+
+
+def test_underflow_falls_back_to_centre_pixel():
+    """All off-centre weights underflow (lambda huge): the output is the centre pixel, exactly."""
+    c, v, f, fv = frame(13)
+    c = c * 1e6  # huge colour differences too
+    out = cross_bilateral(c, v, f, fv, 0.0, 1e30, [0.0, 0.0], radius=3)
+    np.testing.assert_array_equal(out, c)
+    out = cross_nlm(c, v, f, fv, 1e30, [0.0, 0.0], radius=2)
+    np.testing.assert_array_equal(out, c)
+    g = jax.grad(lambda l: cross_bilateral(c, v, f, fv, 0.1, l, [0.0, 0.0], radius=1).sum())(1e30)
+    assert np.isfinite(float(g)), "gradient at full underflow must be finite"
+
+
+def _count_eqns(jaxpr) -> int:
+    """Number of primitive applications in a jaxpr, nested jaxprs (checkpoint, loops) included."""
+    n = 0
+    for e in jaxpr.eqns:
+        n += 1
+        for p in e.params.values():
+            inner = getattr(p, "jaxpr", p)
+            if hasattr(inner, "eqns"):
+                n += _count_eqns(inner)
+    return n
+
+
+def test_constant_feature_is_skipped_with_identical_output():
+    c, v, f, fv = frame(14)
+    const = np.full((H, W, 3), 0.7, np.float32)
+    with_const = cross_bilateral(c, v, [f[0], const], [fv[0], None], 0.1, 0.5, [0.002, 5.0], radius=2)
+    without = cross_bilateral(c, v, [f[0]], [fv[0]], 0.1, 0.5, [0.002], radius=2)
+    np.testing.assert_array_equal(with_const, without)  # bit-identical (tolerance 0)
+    kept = drop_constant_features([f[0], const], [fv[0], None], [0.002, 5.0])
+    assert len(kept[0]) == 1 and kept[0][0] is f[0]
+    # less work: the window loop traced with a constant feature is the loop traced without it
+    def loop(fn):
+        eqns = [e for e in jax.make_jaxpr(fn)(c).eqns if e.primitive.name == "scan"]  # fori_loop
+        return _count_eqns(eqns[0].params["jaxpr"].jaxpr)
+    assert loop(lambda x: cross_bilateral(x, v, [f[0], const], [fv[0], None], 0.1, 0.5, [0.002, 5.0], radius=2)) \
+        == loop(lambda x: cross_bilateral(x, v, [f[0]], [fv[0]], 0.1, 0.5, [0.002], radius=2))
+
+
+def test_jit_matches_eager_and_extreme_inputs_stay_finite():
+    c, v, f, fv = frame(15)
+    fn = jax.jit(lambda c, v, l: cross_bilateral(c, v, f, fv, l, 0.5, [0.002, 0.01], radius=2))
+    np.testing.assert_allclose(fn(c, v, 0.1), cross_bilateral(c, v, f, fv, 0.1, 0.5, [0.002, 0.01], radius=2),
+                               rtol=1e-6, atol=1e-7)
+    black = np.zeros_like(c)
+    assert np.all(np.isfinite(fn(black, np.zeros_like(v), 0.1))), "all-black, zero-variance frame"
+    one = cross_bilateral(c[:1, :1], v[:1, :1], [], [], 0.1, 0.5, [], radius=27)
+    np.testing.assert_array_equal(one, c[:1, :1])  # 1x1 image: only the centre exists
+    odd = cross_nlm(c[:5, :3], v[:5, :3], [], [], 1.0, [], radius=3)
+    assert odd.shape == (5, 3, 3) and np.all(np.isfinite(odd))
+    half = cross_bilateral(c.astype(np.float16), v.astype(np.float16), [], [], 0.1, 0.5, [], radius=2)
+    assert half.dtype == np.float16 and np.all(np.isfinite(np.asarray(half, np.float32)))
+
+
+# ----------------------------------------------------------------------------------------------
+# gradients against finite differences, every filter parameter (float64, tiny sizes)
+
+
+def test_gradients_every_parameter():
+    with jax.enable_x64(True):
+        g = np.random.default_rng(16)
+        h, w = 5, 6
+        c = g.random((h, w, 3))
+        v = 0.1 * g.random((h, w, 3)) + 0.01
+        f = [g.random((h, w, 3)), g.random((h, w, 1))]
+        fv = [0.05 * g.random((h, w)) + 0.01, None]
+        ls, lc = 0.3 + 0.2 * g.random((h, w)), 0.5 + 0.2 * g.random((h, w))
+        lf = [0.003 + 0.001 * g.random((h, w)), 0.0002]
+        kw = dict(order=1, modes=("rev",), atol=1e-5, rtol=1e-4, eps=1e-7)  # float64: tiny steps are exact enough
+
+        def check_grads(fn, args, **kw):  # jit once instead of dispatching op by op
+            _check_grads(jax.jit(fn), args, **kw)
+        check_grads(lambda s: gaussian(c, s, radius=2), (0.8,), **kw)
+        check_grads(lambda s: gaussian(c, s, radius=1), (0.8 + 0.3 * g.random((h, w)),), **kw)
+        check_grads(lambda a, b: bilateral(c, a, b, radius=1), (ls, 2.0), **kw)
+        check_grads(lambda a, b, l0, l1: cross_bilateral(c, v, f, fv, a, b, [l0, l1], radius=1),
+                    (ls, lc, lf[0], lf[1]), **kw)
+        check_grads(lambda p, l0, l1: cross_nlm(c, v, f, fv, p, [l0, l1], radius=1, patch_radius=1),
+                    (lc, lf[0], lf[1]), **kw)
+        check_grads(lambda lam: prefilter_features(f[0], fv[0], radius=1, patch_radius=1, lam=lam)[0],
+                    (0.8,), **kw)
+        cv, vv = np.stack([c, c[::-1]]), np.stack([v, v])
+        fvv = [np.stack([f[0], f[0][:, ::-1]])]
+        check_grads(lambda a, b, l0, t: spatiotemporal_cross_bilateral(
+            cv, vv, fvv, [None], a, b, [l0], radius=1, lam_temporal=t, center=0), (ls, lc, 0.003, 0.5), **kw)
+        # and with respect to the image (the filters are differentiable in their inputs too)
+        check_grads(lambda x: cross_bilateral(x, v, f, fv, 0.3, 0.5, lf, radius=1), (c,), **kw)
+
+
+# ----------------------------------------------------------------------------------------------
+# bad input
+
+
+@pytest.mark.parametrize("call, match", [
+    (lambda c, v: cross_bilateral(c[..., 0], v, [], [], 0.1, 0.1, [], radius=1), "'color'"),
+    (lambda c, v: cross_bilateral(c, v[:4], [], [], 0.1, 0.1, [], radius=1), "'color_var'"),
+    (lambda c, v: cross_bilateral(c, v, [c], [], 0.1, 0.1, [0.1], radius=1), "'feature_vars'"),
+    (lambda c, v: cross_bilateral(c, v, [], [], -1.0, 0.1, [], radius=1), "'lam_spatial'"),
+    (lambda c, v: cross_bilateral(c, v, [], [], np.ones((3, 3)), 0.1, [], radius=1), "'lam_spatial'"),
+    (lambda c, v: cross_bilateral(c, v, [], [], 0.1, 0.1, [], radius=1.5), "'radius'"),
+    (lambda c, v: cross_bilateral(np.where(c > 0.5, np.nan, c), v, [], [], 0.1, 0.1, [], radius=1), "NaN"),
+    (lambda c, v: cross_nlm(c, None, [], [], 0.1, [], radius=1), "'color_var'"),
+    (lambda c, v: gaussian(c, -1.0), "'sigma'"),
+    (lambda c, v: spatiotemporal_cross_bilateral(c, v, [], [], 0.1, 0.1, [], radius=1), "'color'"),
+    (lambda c, v: remove_spikes(c, n_std=float("nan")), "'n_std'"),
+])
+def test_bad_input_raises_naming_the_argument(call, match):
+    c, v = frame(17)[:2]
+    with pytest.raises(FilterError, match=match):
+        call(c, v)
+
+
+# ----------------------------------------------------------------------------------------------
+# the registered `bilateral` and `nlm` methods
+
+
+def test_methods_use_the_features_the_frame_has():
+    from jaxdenoise.buffers import Buffers
+    from jaxdenoise.methods import get
+    from jaxdenoise.methods import bilateral as mod
+
+    c, v, f, fv = frame(18)
+    b = Buffers(color=c, color_var=v, normal=f[0] * 2 - 1, normal_var=fv[0][..., None], visibility=f[1])
+    m = get("bilateral", radius=2, prefilter=False, spike_removal=False, feature_sigmas=(1.0, 0.5, 1.0, 1.0, 2.0))
+    assert m.needs() >= {"color", "color_var", "normal", "position", "albedo", "albedo2", "visibility"}
+    assert m.required() == {"color", "color_var"}
+    out = m.apply({}, b)
+    lam = mod.lambdas(m.config)  # lam_features in config.features order: position, normal, ..., visibility
+    assert lam["lam_features"][1] == 0.5 / 0.5 ** 2 and lam["lam_features"][4] == 0.5 / 2.0 ** 2
+    # position and both albedos are absent: their terms are left out; visibility has no variance
+    want = cross_bilateral(c, v, [b.normal, b.visibility], [b.normal_var, None], lam["lam_spatial"],
+                           lam["lam_color"], [lam["lam_features"][1], lam["lam_features"][4]], radius=2)
+    np.testing.assert_allclose(out, want, rtol=1e-6, atol=1e-7)
+    n = get("nlm", radius=1, patch_radius=1)  # with the prefilter and spike removal
+    out = n.apply({}, b)
+    assert out.shape == c.shape and np.all(np.isfinite(out))
+    with pytest.raises(Exception, match="color_var"):
+        m.apply({}, Buffers(color=c))
+
+
+def test_memory_does_not_grow_with_the_window():
+    """XLA's temporaries (forward and backward) stay flat from a 7x7 to a 25x25 window: the weight
+    tensor is never materialized (tolerance: at most 1.5x, where materializing would be 12.8x)."""
+    c, v, f, fv = frame(19, 32, 32)
+
+    def temp(r, grad):
+        def filt(ls):
+            return cross_bilateral(c, v, f, fv, ls, 0.5, [0.01, 0.01], radius=r)
+
+        fn = jax.grad(lambda ls: filt(ls).sum()) if grad else filt
+        return jax.jit(fn).lower(0.1).compile().memory_analysis().temp_size_in_bytes
+
+    for grad in (False, True):
+        small, large = temp(3, grad), temp(12, grad)
+        assert large <= 1.5 * small, f"grad={grad}: {large} bytes at r=12 vs {small} at r=3"
