@@ -73,7 +73,9 @@ def gaussian(image: Any, sigma: Any, *, radius: int | None = None) -> jax.Array:
     if radius is None:
         if not is_concrete(sigma):
             raise FilterError("argument 'radius' is None but 'sigma' is traced; pass radius= (static)")
-        radius = int(math.ceil(3.0 * float(np.max(np.asarray(sigma)))))
+        # Offsets past the image edge only ever meet zero-weight (outside) pixels, so capping the
+        # default window at the image size is exact; it also keeps sigma -> inf (1e30) finite and fast.
+        radius = int(min(math.ceil(3.0 * float(np.max(np.asarray(sigma)))), max(img.shape[:2]) - 1))
     radius = check_radius(radius)
     if np.ndim(sigma) != 0:
         sig = as_param(sigma, "sigma", img.shape[:2])

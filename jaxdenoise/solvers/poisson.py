@@ -304,9 +304,11 @@ def _l1_irls(base, dx, dy, alpha, *, irls_iters, cg_iters, eps, init):
             wxm, wym = _mask(wx, wy)
             diag = (wxm + jnp.concatenate([jnp.zeros_like(wxm[:, :1]), wxm[:, :-1]], 1)
                     + wym + jnp.concatenate([jnp.zeros_like(wym[:1]), wym[:-1]], 0) + wb)
-            # tol = 1e-10: in practice all cg_iters run; CG stops only once the residual reaches the
-            # rounding floor, where one more step would divide 0 by 0 (tol = 0 gives NaN there).
-            x = solve_cg(lambda v: normal_matvec(v, alpha, wx, wy, wb), rhs, init=x, tol=1e-10, atol=0.0,
+            # tol = 1e-7 (float32's rounding floor, relative): CG stops once the residual cannot
+            # shrink further. A smaller tol lets it step at the floor, where p.Ap rounds to 0 and the
+            # next step divides 0 by 0: NaN, seen in the transposed solve of the gradient at alpha
+            # 1e-6 and 1e6 (stability suite, 7x5 case).
+            x = solve_cg(lambda v: normal_matvec(v, alpha, wx, wy, wb), rhs, init=x, tol=1e-7, atol=0.0,
                          maxiter=cg_iters, M=lambda v: v / diag)
             # Exact correction along the constant image (deflation of the near-null mode): D^T W D
             # annihilates constants, so along 1 the system is sum(W_b) c = sum(W_b (I_b - x)). Its
