@@ -1,0 +1,1 @@
+"""The numerical-stability suite (DESIGN.md "Numerical stability"); see ``cases.py``."""
