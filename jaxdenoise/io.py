@@ -219,6 +219,7 @@ def _write(path: Path, names: list[str], data: np.ndarray, attrs: Mapping[str, A
     spec = oiio.ImageSpec(w, h, c, "float")
     spec.channelnames = tuple(names)
     spec.attribute("compression", "zip")
+    spec.attribute("DateTime", "")  # no write-time stamp: identical pixels give identical files
     for k, v in (attrs or {}).items():
         _header_value(spec, k, v, path)
     with atomic_path(path) as tmp:

@@ -1,0 +1,113 @@
+"""``python -m data_gen render SCENE.xml ...`` and ``python -m data_gen dataset --family rooms ...``."""
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+import time
+
+
+def _spp_list(text: str) -> list[int]:
+    try:
+        vals = [int(t) for t in text.split(",") if t.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--spp expects comma-separated integers, got {text!r}") from None
+    if not vals or any(v < 1 for v in vals):
+        raise argparse.ArgumentTypeError(f"--spp expects integers >= 1, got {text!r}")
+    return vals
+
+
+def _names(text: str | None) -> list[str] | None:
+    return None if text is None else [t.strip() for t in text.split(",") if t.strip()]
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    p = argparse.ArgumentParser(prog="python -m data_gen", description=__doc__)
+    sub = p.add_subparsers(dest="verb", required=True)
+
+    def common(q):
+        q.add_argument("--spp", type=_spp_list, default=[4], help="noisy sample counts, e.g. 1,4,16 (default 4)")
+        q.add_argument("--instances", type=int, default=1, help="independent noisy renders per spp (default 1)")
+        q.add_argument("--ref-spp", type=int, default=1024, help="reference spp, 0 = none (default 1024)")
+        q.add_argument("--max-depth", type=int, default=8, help="max path depth, Mitsuba meaning (default 8)")
+        q.add_argument("--methods", default=None, help="render only what these methods need (comma list)")
+        q.add_argument("--buffers", default=None, help="render exactly these buffers (comma list)")
+        q.add_argument("--seed", type=int, default=0)
+        q.add_argument("--out", required=True, help="output folder")
+        q.add_argument("--variant", default="llvm_ad_rgb", help="preferred Mitsuba variant")
+        q.add_argument("--no-progress", action="store_true")
+
+    r = sub.add_parser("render", help="render one Mitsuba 3 XML scene (or 'default') into the bench layout")
+    r.add_argument("scene", help="scene XML file, or 'default' for the built-in scene")
+    r.add_argument("--width", type=int, default=None)
+    r.add_argument("--height", type=int, default=None)
+    r.add_argument("--frames", type=int, default=0, help="render a camera fly-through of N frames instead")
+    common(r)
+    d = sub.add_parser("dataset", help="render procedural scenes into DIR/scene_XXXX + manifest.json")
+    d.add_argument("--family", default="mixed", help="rooms, objects, dof, thin, fireflies, envmap or mixed")
+    d.add_argument("--count", type=int, required=True)
+    d.add_argument("--start", type=int, default=0, help="index of the first scene folder (default 0)")
+    d.add_argument("--res", type=int, default=128, help="square resolution (default 128)")
+    d.add_argument("--workers", type=int, default=1)
+    d.add_argument("--note", default=None, help="free text stored in the manifest")
+    common(d)
+    a = p.parse_args(argv)
+
+    from .mitsuba_setup import setup_mitsuba
+
+    variant = setup_mitsuba(a.variant)
+    command = "python -m data_gen " + " ".join(shlex.quote(x) for x in argv)
+    t0 = time.perf_counter()
+    if a.verb == "render":
+        from .scenes import default_scene
+        from .sequences import render_sequence
+        from .shot import render_shot
+
+        if a.scene == "default":
+            scene = default_scene(width=a.width or 128, height=a.height or a.width or 128)
+            a.width = a.height = None
+        else:
+            scene = a.scene
+        if a.frames:
+            rec = render_sequence(scene, a.out, n_frames=a.frames, spp=a.spp, instances=a.instances,
+                                  ref_spp=a.ref_spp, seed=a.seed, buffers=_names(a.buffers),
+                                  progress=not a.no_progress, max_depth=a.max_depth, methods=_names(a.methods))
+            frames = rec.get("frames", [])
+            n = sum(len(f.get("files", {})) for f in frames)
+            secs = sum(f.get("render_seconds", 0.0) for f in frames)
+            print(f"data_gen render: {a.frames} frames, {n} files -> {a.out} ({secs:.1f} s rendering, "
+                  f"{time.perf_counter() - t0:.1f} s wall, variant {variant})")
+            return 0
+        rec = render_shot(scene, a.out, spp=a.spp, ref_spp=a.ref_spp, instances=a.instances,
+                          methods=_names(a.methods), buffers=_names(a.buffers), max_depth=a.max_depth,
+                          seed=a.seed, progress=not a.no_progress, width=a.width, height=a.height)
+        rec["command"] = command
+        ref = rec.get("reference") or {}
+        noise = f", reference RelMSE(halves) {ref['relmse_halves']:.2e}" if ref else ""
+        print(f"data_gen render: {len(rec['files'])} files -> {a.out} ({rec['width']}x{rec['height']}, "
+              f"{rec['render_seconds']:.1f} s rendering, {time.perf_counter() - t0:.1f} s wall{noise}, variant {variant})")
+        return 0
+    from .dataset import dataset_size_bytes, generate_dataset
+
+    m = generate_dataset(a.family, a.count, a.out, width=a.res, spp=a.spp, instances=a.instances,
+                         ref_spp=a.ref_spp, seed=a.seed, start=a.start, workers=a.workers, max_depth=a.max_depth,
+                         methods=_names(a.methods), buffers=_names(a.buffers), progress=not a.no_progress,
+                         command=command, note=a.note)
+    size = dataset_size_bytes(a.out) / 2**20
+    print(f"data_gen dataset: {len(m['scenes'])} scenes in {a.out} ({size:.0f} MiB, "
+          f"{m['total_render_seconds']:.0f} s rendering in total, this run {m['runs'][-1]['wall_seconds']:.0f} s wall, "
+          f"variant {variant})")
+    return 0
+
+
+if __name__ == "__main__":
+    try:
+        sys.exit(main())
+    except Exception as exc:  # noqa: BLE001 - one clear line instead of a traceback for user errors
+        from .scenes import SceneError
+
+        if isinstance(exc, (SceneError, ValueError)):
+            print(f"data_gen: error: {exc}", file=sys.stderr)
+            sys.exit(2)
+        raise

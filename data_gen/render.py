@@ -1,0 +1,193 @@
+"""Per-pixel means and variances of the mean, rendered in bounded passes.
+
+All samples of a pass are traced in one wavefront (sample index = pixel * n + s), then reduced per pixel
+with ``dr.block_sum`` into sums and sums of squares; passes accumulate in float64 on the host, so memory
+is bounded by ``samples_per_pass`` whatever the sample count (the references use the same code).
+"""
+from __future__ import annotations
+
+from typing import Callable, Iterable
+
+import numpy as np
+
+from .integrator import FEATURE_DIMS, FEATURES, PathSettings, _RoughnessLookup, derive_seed, trace
+from .mitsuba_setup import is_vectorized
+
+DEFAULT_SAMPLES_PER_PASS = 1 << 20
+
+
+def film_size(scene) -> tuple[int, int]:
+    """(width, height) of the first sensor's film crop."""
+    film = scene.sensors()[0].film()
+    size = film.crop_size()
+    return int(size[0]), int(size[1])
+
+
+def _channels(name: str) -> int:
+    return 3 if name == "color" else FEATURE_DIMS[name]
+
+
+def _sample_wavefront(scene, sensor, sampler, npix: int, n: int, width: int):
+    """Camera rays for ``n`` samples of each of ``npix`` pixels (box filter: uniform in the pixel)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    film = sensor.film()
+    idx = dr.arange(mi.UInt32, npix * n)
+    if n > 1:
+        idx = idx // dr.opaque(mi.UInt32, n)
+    pos = mi.Vector2i()
+    pos.y = mi.Int32(idx // dr.opaque(mi.UInt32, width))
+    pos.x = mi.Int32(idx) - pos.y * width
+    pos += mi.Vector2i(film.crop_offset())
+    pos_f = mi.Vector2f(pos) + sampler.next_2d()
+    scale = dr.rcp(mi.ScalarVector2f(film.crop_size()))
+    offset = -mi.ScalarVector2f(film.crop_offset()) * scale
+    pos_adj = dr.fma(pos_f, scale, offset)
+    aperture = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Vector2f(0.5)
+    t = mi.Float(sensor.shutter_open())
+    if sensor.shutter_open_time() > 0:
+        t += sampler.next_1d() * sensor.shutter_open_time()
+    wav = sampler.next_1d()
+    ray, weight = sensor.sample_ray_differential(time=t, sample1=wav, sample2=pos_adj, sample3=aperture)
+    return mi.Ray3f(ray), weight
+
+
+def render_moments(scene, *, spp: int, seed: int, settings: PathSettings, record: Iterable[str] = (),
+                   samples_per_pass: int = DEFAULT_SAMPLES_PER_PASS,
+                   on_pass: Callable[[int], None] | None = None) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Sums and sums of squares over ``spp`` samples per pixel, per buffer.
+
+    Returns ``{name: (sum, sumsq)}`` with float64 arrays of shape (H, W, C) for ``color`` and every
+    feature in ``record``. ``on_pass(k)`` is called after each pass with the samples it added per pixel.
+    """
+    import drjit as dr
+    import mitsuba as mi
+
+    if not isinstance(spp, (int, np.integer)) or spp < 1:
+        raise ValueError(f"spp must be an int >= 1, got {spp!r}")
+    record = frozenset(record)
+    unknown = record - set(FEATURES)
+    if unknown:
+        raise ValueError(f"record: unknown feature(s) {sorted(unknown)}; known: {list(FEATURES)}")
+    names = ["color"] + [f for f in FEATURES if f in record]
+    width, height = film_size(scene)
+    npix = width * height
+    sensor = scene.sensors()[0]
+    rough = _RoughnessLookup(scene) if "roughness" in record else None
+    acc = {k: (np.zeros((npix, _channels(k))), np.zeros((npix, _channels(k)))) for k in names}
+
+    if not is_vectorized():
+        _render_scalar(scene, sensor, spp, seed, settings, record, rough, acc, width, on_pass)
+    else:
+        per_pass = max(1, min(int(spp), samples_per_pass // max(npix, 1)))
+        sampler = mi.load_dict({"type": "independent"})
+        done, k = 0, 0
+        while done < spp:
+            n = min(per_pass, spp - done)
+            sampler.seed(dr.opaque(mi.UInt32, derive_seed(seed, "pass", k)), npix * n)
+            ray, weight = _sample_wavefront(scene, sensor, sampler, npix, n, width)
+            out = trace(scene, sampler, ray, True, settings=settings, record=record, roughness=rough)
+            out["color"] = out["color"] * weight
+            comps = []
+            for name in names:
+                v = out[name]
+                comps.extend([v[c] for c in range(3)] if _channels(name) == 3 else [v])
+            dr.eval(*comps)
+            sums = [dr.block_sum(c, n) for c in comps] + [dr.block_sum(c * c, n) for c in comps]
+            dr.eval(*sums)
+            arrs = [np.asarray(a, dtype=np.float64) for a in sums]
+            nc = len(comps)
+            i = 0
+            for name in names:
+                c = _channels(name)
+                acc[name][0][:] += np.stack(arrs[i:i + c], -1)
+                acc[name][1][:] += np.stack(arrs[nc + i:nc + i + c], -1)
+                i += c
+            del out, comps, sums
+            done += n
+            k += 1
+            if on_pass is not None:
+                on_pass(n)
+    return {k: (v[0].reshape(height, width, -1), v[1].reshape(height, width, -1)) for k, v in acc.items()}
+
+
+def _render_scalar(scene, sensor, spp, seed, settings, record, rough, acc, width, on_pass) -> None:
+    """The same estimator one sample at a time, for the ``scalar_rgb`` fallback (slow: tiny images only)."""
+    import mitsuba as mi
+
+    film = sensor.film()
+    size = film.crop_size()
+    off = film.crop_offset()
+    sampler = mi.load_dict({"type": "independent"})
+    npix = acc["color"][0].shape[0]
+    for p in range(npix):
+        sampler.seed(derive_seed(seed, "pixel", p), 1)
+        y, x = divmod(p, width)
+        for _ in range(spp):
+            u = sampler.next_2d()
+            pos = mi.ScalarVector2f((x + off[0] + u[0] - off[0]) / size[0], (y + off[1] + u[1] - off[1]) / size[1])
+            aperture = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Point2f(0.5)
+            t = sensor.shutter_open()
+            if sensor.shutter_open_time() > 0:
+                t += sampler.next_1d() * sensor.shutter_open_time()
+            ray, weight = sensor.sample_ray_differential(t, sampler.next_1d(), pos, aperture)
+            out = trace(scene, sampler, mi.Ray3f(ray), True, settings=settings, record=record, roughness=rough)
+            out["color"] = out["color"] * weight
+            for name, (s, q) in acc.items():
+                v = np.array([out[name][c] for c in range(3)] if _channels(name) == 3 else [out[name]], np.float64)
+                s[p] += v
+                q[p] += v * v
+        if on_pass is not None and p == npix - 1:
+            on_pass(spp)
+
+
+def moments_to_buffers(moments: dict, spp: int) -> dict[str, np.ndarray]:
+    """Means and variances of the mean (float32 HWC) from ``render_moments`` output.
+
+    ``color_var`` keeps 3 channels; ``<feature>_var`` is the mean of the per-channel variances (one
+    channel). With ``spp == 1`` the variance cannot be estimated, so no ``*_var`` is returned.
+    """
+    out: dict[str, np.ndarray] = {}
+    for name, (s, q) in moments.items():
+        mean = s / spp
+        out[name] = mean.astype(np.float32)
+        if spp > 1:
+            # Unbiased sample variance / n. Guard: float64 cancellation can leave tiny negatives.
+            var = np.maximum(q - s * s / spp, 0.0) / (spp - 1) / spp
+            if name == "color":
+                out["color_var"] = var.astype(np.float32)
+            else:
+                out[f"{name}_var"] = var.mean(-1, keepdims=True).astype(np.float32)
+    return out
+
+
+def render_buffers(scene, *, spp: int, seed: int, settings: PathSettings, record: Iterable[str] = (),
+                   samples_per_pass: int = DEFAULT_SAMPLES_PER_PASS, on_pass=None) -> dict[str, np.ndarray]:
+    """Render ``spp`` samples per pixel and return the buffers (means + variances of the mean)."""
+    m = render_moments(scene, spp=spp, seed=seed, settings=settings, record=record,
+                       samples_per_pass=samples_per_pass, on_pass=on_pass)
+    return moments_to_buffers(m, spp)
+
+
+def render_reference(scene, *, spp: int, seed: int, settings: PathSettings,
+                     samples_per_pass: int = DEFAULT_SAMPLES_PER_PASS, on_pass=None) -> tuple[np.ndarray, float]:
+    """A radiance-only reference from two independent halves (different seeds).
+
+    Returns (image float32 HWC, RelMSE between the two halves). The RelMSE of the full-spp average
+    against the true image is about a quarter of the half-vs-half RelMSE (each half has twice the
+    variance of the average, and their difference four times): both numbers go into the manifest.
+    """
+    if spp < 2:
+        raise ValueError(f"ref_spp must be >= 2 (two independent halves), got {spp}")
+    half_a = spp // 2
+    half_b = spp - half_a
+    ma = render_moments(scene, spp=half_a, seed=derive_seed(seed, "ref-a"), settings=settings,
+                        samples_per_pass=samples_per_pass, on_pass=on_pass)["color"][0]
+    mb = render_moments(scene, spp=half_b, seed=derive_seed(seed, "ref-b"), settings=settings,
+                        samples_per_pass=samples_per_pass, on_pass=on_pass)["color"][0]
+    a, b = ma / half_a, mb / half_b
+    ref = ((ma + mb) / spp).astype(np.float32)
+    # RelMSE as in DESIGN.md (eps = 0.01), computed here in float64 without importing jax.
+    noise = float(np.mean((a - b) ** 2 / (ref.astype(np.float64) ** 2 + 0.01)))
+    return ref, noise

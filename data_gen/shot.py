@@ -1,0 +1,289 @@
+"""One shot (noisy renders at several spp and instances + a reference) in the bench layout, resumable.
+
+Layout (DESIGN.md "Data folders"): ``out_dir/spp{spp:04d}_{instance:02d}.exr`` noisy renders,
+``out_dir/reference.exr`` the reference, ``out_dir/shot.json`` the shot's manifest record. A file is
+skipped on a re-run when it exists, its checksum matches the record and the record's settings equal
+the requested ones; every file is written to a temporary name and renamed (``jaxdenoise.io`` and
+``jaxdenoise.fsutil``), so an interrupted run never leaves a half-written file.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+
+from .integrator import FEATURES, PathSettings, derive_seed
+from .render import DEFAULT_SAMPLES_PER_PASS, film_size, render_buffers, render_reference
+from .scenes import describe, load_scene
+
+GRADIENT_FIELDS = ("dx", "dy")
+SHOT_RECORD = "shot.json"
+INTEGRATOR_NAME = "data_gen.buffers"
+
+
+# --------------------------------------------------------------------------------------------------
+# Which buffers to render
+# --------------------------------------------------------------------------------------------------
+def requested_fields(methods: Iterable[str] | None, buffers: Iterable[str] | None) -> frozenset[str] | None:
+    """The Buffers fields asked for: ``buffers`` if given, else the union of the methods' ``needs()``,
+    else None (= everything the scene can vary)."""
+    from jaxdenoise.buffers import ALL_FIELDS
+
+    if buffers is not None:
+        buffers = frozenset(buffers)
+        unknown = sorted(buffers - set(ALL_FIELDS))
+        if unknown:
+            raise ValueError(f"buffers: unknown buffer name(s) {unknown}; known: {list(ALL_FIELDS)}")
+        return buffers | {"color"}
+    if methods is not None:
+        import importlib
+
+        registry = importlib.import_module("jaxdenoise.methods")  # jaxdenoise.methods may be shadowed by a function
+
+        need: set[str] = {"color"}
+        for name in methods:
+            need |= set(registry.get(name).needs())
+        return frozenset(need)
+    return None
+
+
+def plan_buffers(desc: dict, settings: PathSettings, requested: frozenset[str] | None, spp: int) -> tuple[list[str], dict[str, str]]:
+    """(fields to write, {left-out buffer: why}) for one noisy render.
+
+    With ``requested is None`` every buffer the scene can vary is written; a buffer a method asks for
+    is always written (even if constant here), except variances at 1 spp, which cannot be estimated.
+    """
+    from jaxdenoise.buffers import IMAGE_FIELDS
+
+    invariant: dict[str, str] = {}
+    if settings.max_depth < 3:
+        invariant["albedo2"] = f"max_depth={settings.max_depth} < 3: paths end before a second surface"
+    if desc["emitters"] == 0:
+        invariant["visibility"] = "the scene has no emitters"
+    elif settings.max_depth < 2:
+        invariant["visibility"] = f"max_depth={settings.max_depth} < 2: no shadow rays"
+    if len(desc["roughness_values"]) <= 1:
+        invariant["roughness"] = f"every BSDF has the same roughness {desc['roughness_values']}: a constant buffer"
+    candidates = [f for f in IMAGE_FIELDS]
+    left: dict[str, str] = {}
+    fields: list[str] = []
+    for f in candidates:
+        base = f[:-4] if f.endswith("_var") else f
+        if requested is not None and f not in requested:
+            left[f] = "not needed by the requested methods/buffers"
+            continue
+        if requested is None and f in GRADIENT_FIELDS:
+            left[f] = "no gradient-domain method requested (shifted paths not traced)"
+            continue
+        if requested is None and base in invariant:
+            left[f] = invariant[base]
+            continue
+        if f.endswith("_var") and spp < 2:
+            left[f] = "1 spp: the variance of the mean cannot be estimated from one sample"
+            continue
+        fields.append(f)
+    if not desc["lens"]:
+        left["lens"] = "pinhole camera: no aperture samples are drawn"
+    return fields, left
+
+
+# --------------------------------------------------------------------------------------------------
+# Records
+# --------------------------------------------------------------------------------------------------
+def sha256(path: str | os.PathLike) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def data_sha256(arrays: dict) -> str:
+    """Checksum of the pixel data (field names + float32 bytes). The EXR file's own checksum also
+    covers header fields such as OpenImageIO's DateTime, which differ between otherwise equal runs."""
+    h = hashlib.sha256()
+    for k in sorted(arrays):
+        h.update(k.encode())
+        h.update(np.ascontiguousarray(np.asarray(arrays[k], np.float32)).tobytes())
+    return h.hexdigest()
+
+
+def _read_record(out_dir: Path) -> dict:
+    p = out_dir / SHOT_RECORD
+    if not p.exists():
+        return {}
+    try:
+        return json.loads(p.read_text())
+    except json.JSONDecodeError:
+        return {}  # a record written by a crashed older version: re-render everything
+
+
+def _is_done(out_dir: Path, record: dict, name: str, key: dict) -> bool:
+    entry = record.get("files", {}).get(name)
+    path = out_dir / name
+    if entry is None or not path.exists() or entry.get("key") != key:
+        return False
+    return entry.get("sha256") == sha256(path)
+
+
+def _scene_label(scene: Any) -> str:
+    if isinstance(scene, (str, os.PathLike)):
+        return os.fspath(scene)
+    if isinstance(scene, dict):
+        return str(scene.get("__name__", scene.get("__family__", "dict")))
+    return "mitsuba.Scene"
+
+
+# --------------------------------------------------------------------------------------------------
+# render_shot
+# --------------------------------------------------------------------------------------------------
+def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = (4,), ref_spp: int = 1024,
+                instances: int = 1, methods: Iterable[str] | None = None, buffers: Iterable[str] | None = None,
+                max_depth: int = 8, rr_depth: int = 5, seed: int = 0, progress: bool = True,
+                samples_per_pass: int = DEFAULT_SAMPLES_PER_PASS, width: int | None = None,
+                height: int | None = None, _stop_after: int | None = None) -> dict:
+    """Render noisy frames at every ``spp`` (``instances`` independent realizations each) and a
+    ``ref_spp`` reference into ``out_dir``; return the shot's manifest record (also in ``shot.json``).
+
+    ``scene``: scene dict, XML path or loaded ``mi.Scene``. ``methods`` (registered names) or
+    ``buffers`` (field names) choose what is written; both None = every buffer the scene can vary.
+    ``ref_spp=0`` skips the reference. Finished files are skipped (resumable).
+    """
+    from jaxdenoise.buffers import Buffers
+    from jaxdenoise.fsutil import write_json
+    from jaxdenoise.io import write_buffers
+
+    spp = [int(s) for s in (spp if isinstance(spp, (list, tuple)) else [spp])]
+    if not spp and not ref_spp:
+        raise ValueError("render_shot: nothing to render (empty spp and ref_spp=0)")
+    if any(s < 1 for s in spp):
+        raise ValueError(f"spp: every value must be >= 1, got {spp}")
+    if not isinstance(instances, int) or instances < 1:
+        raise ValueError(f"instances must be an int >= 1, got {instances!r}")
+    if ref_spp and ref_spp < 2:
+        raise ValueError(f"ref_spp must be 0 (no reference) or >= 2, got {ref_spp}")
+    settings = PathSettings(max_depth=int(max_depth), rr_depth=int(rr_depth))
+    label = _scene_label(scene)
+    loaded = load_scene(scene, width=width, height=height)
+    desc = describe(loaded)
+    w, h = film_size(loaded)
+    requested = requested_fields(methods, buffers)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    record = _read_record(out_dir)
+    files: dict[str, dict] = dict(record.get("files", {}))
+    base_key = {"scene": label, "seed": int(seed), "width": w, "height": h, "max_depth": settings.max_depth,
+                "rr_depth": settings.rr_depth, "integrator": INTEGRATOR_NAME}
+    jobs = []
+    left_out: dict[str, dict[str, str]] = {}
+    for s in spp:
+        fields, left = plan_buffers(desc, settings, requested, s)
+        left_out[f"spp{s}"] = left
+        for i in range(instances):
+            name = f"spp{s:04d}_{i:02d}.exr"
+            key = dict(base_key, spp=s, instance=i, fields=fields)
+            jobs.append((name, key, s, i, fields))
+    if ref_spp:
+        jobs.append(("reference.exr", dict(base_key, spp=int(ref_spp), reference=True), int(ref_spp), None, ["color"]))
+    todo = [j for j in jobs if not _is_done(out_dir, record, j[0], j[1])]
+    total = sum(j[2] for j in todo)
+    bar = None
+    if progress and todo:
+        from tqdm import tqdm
+
+        bar = tqdm(total=total, unit="spp", desc=f"{out_dir.name}", leave=False, file=sys.stderr)
+
+    def tick(n: int) -> None:
+        if bar is not None:
+            bar.update(n)
+
+    rec = {"scene": label, "seed": int(seed), "width": w, "height": h, "settings": dataclass_dict(settings),
+           "spp": spp, "instances": instances, "ref_spp": int(ref_spp), "scene_info": desc,
+           "requested": sorted(requested) if requested is not None else None, "left_out": left_out,
+           "files": files, "reference": record.get("reference")}
+    written = 0
+    try:
+        for name, key, s, inst, fields in todo:
+            t0 = time.perf_counter()
+            if inst is None:
+                ref, noise = render_reference(loaded, spp=s, seed=derive_seed(seed, "reference"),
+                                              settings=settings, samples_per_pass=samples_per_pass, on_pass=tick)
+                seconds = time.perf_counter() - t0
+                attrs = _attrs(base_key, s, None, seconds)
+                attrs["ref_relmse_halves"] = noise
+                write_buffers(out_dir / name, Buffers(color=ref, spp=s), attrs)
+                dsha = data_sha256({"color": ref})
+                rec["reference"] = {"file": name, "spp": s, "seconds": seconds, "relmse_halves": noise,
+                                    "relmse_estimate": noise / 4.0,
+                                    "note": "relmse_halves = RelMSE between two independent half-spp renders; "
+                                            "the full reference's own RelMSE is about a quarter of it"}
+            else:
+                fseed = derive_seed(seed, "noisy", s, inst)
+                record_feats = [f for f in FEATURES if f in fields or f"{f}_var" in fields]
+                data = render_buffers(loaded, spp=s, seed=fseed, settings=settings, record=record_feats,
+                                      samples_per_pass=samples_per_pass, on_pass=tick)
+                grad_seconds = 0.0
+                if any(f in fields for f in GRADIENT_FIELDS):
+                    tg = time.perf_counter()
+                    data.update(_gradients(loaded, s, fseed, settings, samples_per_pass))
+                    grad_seconds = time.perf_counter() - tg
+                seconds = time.perf_counter() - t0
+                bufs = Buffers(**{f: data[f] for f in fields if f in data}, spp=s)
+                attrs = _attrs(base_key, s, inst, seconds)
+                write_buffers(out_dir / name, bufs, attrs)
+                dsha = data_sha256({f: data[f] for f in fields if f in data})
+                key = dict(key)
+                files[name] = {"key": key, "seconds": seconds, "gradient_seconds": grad_seconds, "spp": s,
+                               "instance": inst, "seed": fseed, "fields": fields}
+            files.setdefault(name, {})
+            files[name].update({"key": key, "sha256": sha256(out_dir / name), "data_sha256": dsha})
+            if inst is None:
+                files[name].update({"seconds": seconds, "spp": s})
+            rec["files"] = files
+            write_json(out_dir / SHOT_RECORD, rec)
+            written += 1
+            if _stop_after is not None and written >= _stop_after:
+                raise KeyboardInterrupt(f"render_shot: stopped after {written} file(s) (_stop_after)")
+    finally:
+        if bar is not None:
+            bar.close()
+    # Drop entries of files no longer requested, so the record lists exactly the shot's files.
+    wanted = {j[0] for j in jobs}
+    rec["files"] = {k: v for k, v in files.items() if k in wanted}
+    rec["render_seconds"] = float(sum(v.get("seconds", 0.0) for v in rec["files"].values()))
+    write_json(out_dir / SHOT_RECORD, rec)
+    return rec
+
+
+def _gradients(scene, spp, seed, settings, samples_per_pass) -> dict:
+    try:
+        from . import gradient
+    except ImportError as exc:
+        raise RuntimeError(
+            "gradient-domain buffers (dx, dy) were requested but data_gen.gradient is not available "
+            f"({exc}); request methods/buffers without dx/dy") from None
+    out = gradient.render_gradients(scene, spp=spp, seed=seed, max_depth=settings.max_depth,
+                                     rr_depth=settings.rr_depth, samples_per_pass=samples_per_pass)
+    # dx_var / dy_var have no channels in the EXR contract (jaxdenoise.buffers.CHANNELS): not written.
+    return {k: np.asarray(out[k], np.float32) for k in ("dx", "dy")}
+
+
+def _attrs(base_key: dict, spp: int, instance, seconds: float) -> dict:
+    a = {"integrator": INTEGRATOR_NAME, "scene": str(base_key["scene"])[-200:], "seed": int(base_key["seed"]),
+         "max_depth": int(base_key["max_depth"]), "rr_depth": int(base_key["rr_depth"]),
+         "pixel_filter": "box"}  # render seconds live in the manifest: files stay byte-identical across runs
+    if instance is not None:
+        a["instance"] = int(instance)
+    return a
+
+
+def dataclass_dict(obj) -> dict:
+    import dataclasses
+
+    return dataclasses.asdict(obj)
