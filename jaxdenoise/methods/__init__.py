@@ -32,6 +32,12 @@ _REGISTRY: dict[str, tuple[str, dict[str, Any]]] = {
     "input": ("jaxdenoise.methods.input", {}),
     "gaussian": ("jaxdenoise.methods.gaussian", {}),
     "oidn": ("jaxdenoise.methods.oidn", {}),
+    "lbf": ("jaxdenoise.methods.lbf", {"filter": "bilateral"}),
+    "lbf-nlm": ("jaxdenoise.methods.lbf", {"filter": "nlm"}),
+    "bilateral": ("jaxdenoise.methods.bilateral", {"filter": "bilateral"}),
+    "nlm": ("jaxdenoise.methods.bilateral", {"filter": "nlm"}),
+    "poisson-l2": ("jaxdenoise.methods.poisson", {"norm": "l2"}),
+    "poisson-l1": ("jaxdenoise.methods.poisson", {"norm": "l1"}),
 }
 
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"

@@ -1,0 +1,117 @@
+"""LBF claims (c) network size (Fig. 11: hidden 10 vs 20 vs (10, 10)) and (d) which secondary-
+feature category matters most (Sec. 6: each Sec. 3.3 category removed in turn; the paper finds the
+feature statistics matter most).
+
+Reduced protocol (2 shared CPU cores, stated in docs/results/lbf.md): every variant is trained
+from the same seed, on the same precomputed training set, for the same number of RPROP steps, with
+a 15x15 filter window (radius 7) instead of 55x55; each is scored by the mean RelMSE and SSIM
+(after spike removal) on held-out frames. "Removing" a category feeds its inputs as the constant 0
+(the training mean after normalization), which is equivalent to deleting those inputs.
+
+    python experiments/lbf_ablation.py --train data/train_rooms --scenes 0:6 \
+        --test runs/lbf_eval_data --steps 60 --out docs/results
+
+Writes ``lbf_ablation.json`` and ``lbf_ablation.md``.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "experiments"))
+
+import jax  # noqa: E402
+import numpy as np  # noqa: E402
+
+from jaxdenoise import checkpoint, metrics  # noqa: E402
+from jaxdenoise.fsutil import write_json, write_text  # noqa: E402
+from jaxdenoise.io import read_buffers, read_image  # noqa: E402
+from jaxdenoise.methods import lbf  # noqa: E402
+from jaxdenoise.methods.lbf_features import CATEGORIES  # noqa: E402
+from jaxdenoise.train import train  # noqa: E402
+from lbf_eval import frames  # noqa: E402
+from lbf_train import link_scenes  # noqa: E402
+
+
+def variants(base: lbf.Config) -> list[tuple[str, str, lbf.Config]]:
+    out = [("size", "hidden (10,) [paper]", base),
+           ("size", "hidden (20,)", dataclasses.replace(base, hidden=(20,))),
+           ("size", "hidden (10, 10)", dataclasses.replace(base, hidden=(10, 10)))]
+    for c in CATEGORIES:
+        out.append(("features", f"without {c}", dataclasses.replace(base, drop_categories=(c,))))
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--train", default="data/train_rooms")
+    ap.add_argument("--scenes", default="0:6")
+    ap.add_argument("--test", required=True)
+    ap.add_argument("--test-spp", default="4,16,64")
+    ap.add_argument("--steps", type=int, default=60)
+    ap.add_argument("--radius", type=int, default=7)
+    ap.add_argument("--runs", default="runs/lbf_ablation")
+    ap.add_argument("--out", default="docs/results")
+    ap.add_argument("--only", default=None, help="comma list of variant labels to run (default all)")
+    args = ap.parse_args()
+    t0 = time.time()
+    runs = Path(args.runs)
+    base = lbf.Config(radius=args.radius)
+    names = link_scenes(Path(args.train), args.scenes, runs / "data")
+    dataset = lbf.make_dataset(runs / "data", base)
+    trained = []
+    for group, label, cfg in variants(base):
+        if args.only and label not in args.only.split(","):
+            continue
+        run = runs / label.replace(" ", "_").replace(",", "").replace("(", "").replace(")", "").replace("[", "").replace("]", "")
+        s = train("lbf", runs / "data", run, steps=args.steps, config=cfg, progress=False, dataset=dataset,
+                  checkpoint_every=args.steps)
+        trained.append((group, label, cfg, run, s))
+        print(f"trained {label}: loss {s['final_loss']:.4g} ({time.time() - t0:.0f} s)", flush=True)
+    # Held-out frames are read after training (they may still be rendering when this starts).
+    test_spp = {int(s) for s in args.test_spp.split(",")}
+    tests = []
+    prep_fn = jax.jit(lambda b: lbf.prepare(b, base))
+    for shot, spp, path, refp in frames(Path(args.test)):
+        if spp in test_spp:
+            b, _ = read_buffers(path)
+            b = b.only(lbf.needs(base))
+            tests.append((shot, spp, prep_fn(b), read_image(refp)[..., :3], np.asarray(b.color)))
+    results = []
+    for group, label, cfg, run, s in trained:
+        params, _ = checkpoint.load(run / "weights")
+        fn = jax.jit(lambda p, prep, cfg=cfg: lbf._remove_spikes(lbf.filter_with(lbf.filter_params(p, prep["x"], cfg), prep, cfg)))
+        rel, ss = [], []
+        for shot, spp, prep, ref, _ in tests:
+            img = np.asarray(fn(params, prep))
+            rel.append(float(metrics.relmse(img, ref)))
+            ss.append(float(metrics.ssim(img, ref)))
+        results.append({"group": group, "variant": label, "train_loss": s["final_loss"], "steps": s["steps_done"],
+                        "test_relmse": float(np.mean(rel)), "test_ssim": float(np.mean(ss)),
+                        "train_seconds": s["seconds"]})
+        print(f"{label}: train loss {s['final_loss']:.4g}, test RelMSE {np.mean(rel):.4g}, SSIM {np.mean(ss):.4f} "
+              f"({time.time() - t0:.0f} s)", flush=True)
+    inp = float(np.mean([float(metrics.relmse(c, r)) for _, _, _, r, c in tests]))
+    result = {"command": "python " + " ".join(sys.argv), "train_scenes": names, "test": args.test,
+              "test_spp": sorted(test_spp), "test_frames": len(tests), "steps": args.steps,
+              "radius": args.radius, "input_relmse": inp, "results": results, "seconds": time.time() - t0}
+    write_json(Path(args.out) / "lbf_ablation.json", result)
+    lines = ["# LBF claims (c) network size and (d) secondary-feature categories", "",
+             f"Command: `{result['command']}`  ",
+             f"Reduced protocol: {args.steps} RPROP steps per variant, filter window {2 * args.radius + 1}x{2 * args.radius + 1}, "
+             f"training scenes {names[0]}..{names[-1]}, {len(tests)} held-out frames at spp {sorted(test_spp)} "
+             f"(input RelMSE {inp:.4g}).", "",
+             "| group | variant | train loss (Eq. 8, last 10 steps) | held-out RelMSE | held-out SSIM |", "|---|---|---|---|---|"]
+    for r in results:
+        lines.append(f"| {r['group']} | {r['variant']} | {r['train_loss']:.4g} | {r['test_relmse']:.4g} | {r['test_ssim']:.4f} |")
+    write_text(Path(args.out) / "lbf_ablation.md", "\n".join(lines) + "\n")
+    print(f"lbf_ablation: {len(results)} variants in {time.time() - t0:.0f} s")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,126 @@
+"""Train the shipped LBF weights (`lbf`, `lbf-nlm`) on a fixed subset of data_gen's procedural
+training scenes, under a wall-clock limit, and record how in jaxdenoise/weights/<name>/README.md.
+
+    python experiments/lbf_train.py --method lbf --data data/train_rooms --scenes 0:20 \
+        --out runs/lbf --minutes 20 [--resume]
+    python experiments/lbf_train.py --method lbf --out runs/lbf --ship   # copy weights + README
+
+The scene subset is linked into ``<out>/data`` so the run (and a resume) sees exactly those scenes;
+the remaining scenes of the folder stay unseen and can serve as held-out frames.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from jaxdenoise import checkpoint  # noqa: E402
+from jaxdenoise.fsutil import write_text  # noqa: E402
+from jaxdenoise.methods import WEIGHTS_DIR  # noqa: E402
+
+
+def link_scenes(data: Path, spec: str, dest: Path) -> list[str]:
+    lo, hi = (int(x) for x in spec.split(":"))
+    scenes = sorted(p for p in data.iterdir() if p.is_dir() and (p / "reference.exr").is_file())[lo:hi]
+    dest.mkdir(parents=True, exist_ok=True)
+    for p in scenes:
+        link = dest / p.name
+        if not link.exists():
+            link.symlink_to(p.resolve())
+    return [p.name for p in scenes]
+
+
+def ship(method: str, out: Path) -> Path:
+    resolved = json.loads((out / "train_config.json").read_text())
+    if (out / "summary.json").is_file():
+        summary = json.loads((out / "summary.json").read_text())
+        params, meta = checkpoint.load(out / "weights")
+    else:  # the run was stopped: ship its last checkpoint (written every checkpoint_every steps)
+        state, cmeta = checkpoint.load(out / "checkpoint")
+        params = state["params"]
+        hist = cmeta["history"]
+        elapsed = (out / "checkpoint" / "config.json").stat().st_mtime - (out / "train_config.json").stat().st_mtime
+        summary = {"steps_done": cmeta["step"], "final_loss": sum(hist[-10:]) / max(1, len(hist[-10:])),
+                   "seconds": elapsed}
+        meta = {"config": cmeta["config"], "method": method, "steps": cmeta["step"],
+                "data": resolved["data"], "seed": resolved["seed"], "final_loss": summary["final_loss"],
+                "note": "run stopped by hand at the session's time limit; last checkpoint shipped"}
+    dest = WEIGHTS_DIR / method
+    if dest.exists():
+        shutil.rmtree(dest)
+    checkpoint.save(dest, params, None, extra={k: v for k, v in meta.items()})
+    scenes = json.loads((out / "scenes.json").read_text())
+    hist = json.loads((out / "checkpoint" / "config.json").read_text()).get("history", [])
+    text = f"""# Weights `{method}` (Kalantari, Bako, Sen 2015)
+
+Trained with the generic loop `jaxdenoise.train.train` through:
+
+```
+{scenes['command']}
+```
+
+- data: `{scenes['data']}` (data_gen procedural `mixed`/rooms family, 128x128), scenes
+  {', '.join(scenes['scenes'])} ({len(scenes['scenes'])} scenes; every other scene of that folder was
+  never seen in training); spp {resolved['config']['train_spps']}, both noise instances.
+- optimizer: {resolved['train']['optimizer']} (initial step {resolved['train']['learning_rate']}),
+  {summary['steps_done']} steps of {resolved['config']['train_scenes_per_step']} scenes x
+  {len(resolved['config']['train_spps'])} spp crops of {resolved['config']['train_crop']}x{resolved['config']['train_crop']},
+  seed {resolved['seed']}, filter window {2 * resolved['config']['radius'] + 1}x{2 * resolved['config']['radius'] + 1}.
+- time: {summary['seconds'] / 60:.1f} min wall (2 CPU cores shared with other jobs).
+- final loss (Eq. 8, mean of the last 10 mini-batches): {summary['final_loss']:.5g};
+  first 10 mini-batches: {sum(hist[:10]) / max(1, len(hist[:10])):.5g}.
+
+Files: `params.npz` (MLP weights `net`, input normalization `norm`), `config.json` (the method
+config the weights were trained with, restored by `jaxdenoise.load`).
+"""
+    write_text(dest / "README.md", text)
+    return dest
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--method", default="lbf", choices=["lbf", "lbf-nlm"])
+    ap.add_argument("--data", default="data/train_rooms")
+    ap.add_argument("--scenes", default="0:20", help="slice of the sorted scene folders, lo:hi")
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--minutes", type=float, default=20.0)
+    ap.add_argument("--steps", type=int, default=400)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--crop", type=int, default=None, help="training crop size (Config.train_crop)")
+    ap.add_argument("--scenes-per-step", type=int, default=None, help="Config.train_scenes_per_step")
+    ap.add_argument("--resume", action="store_true")
+    ap.add_argument("--ship", action="store_true", help="copy the run's weights into jaxdenoise/weights/")
+    args = ap.parse_args()
+    out = Path(args.out)
+    if args.ship:
+        print(f"shipped to {ship(args.method, out)}")
+        return
+    import dataclasses
+
+    from jaxdenoise.fsutil import write_json
+    from jaxdenoise.methods import get
+    from jaxdenoise.train import train
+
+    config = get(args.method).config
+    if args.crop is not None:
+        config = dataclasses.replace(config, train_crop=args.crop)
+    if args.scenes_per_step is not None:
+        config = dataclasses.replace(config, train_scenes_per_step=args.scenes_per_step)
+
+    names = link_scenes(Path(args.data), args.scenes, out / "data")
+    write_json(out / "scenes.json", {"data": args.data, "scenes": names,
+                                     "command": "python " + " ".join(sys.argv)})
+    t0 = time.time()
+    summary = train(args.method, out / "data", out, resume=args.resume, steps=args.steps, seed=args.seed,
+                    progress=True, time_limit=args.minutes * 60, config=config)
+    print(summary["line"], f"({time.time() - t0:.0f} s)")
+
+
+if __name__ == "__main__":
+    main()
