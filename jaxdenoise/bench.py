@@ -8,7 +8,7 @@ compilation, measured ahead of time and reported separately) and peak memory.
 
 Peak memory: for jitted methods, XLA's compiled memory analysis (arguments + outputs + temporaries,
 exact for the compiled program); for foreign code (OIDN) the growth of the process's resident set
-while it runs, sampled every millisecond (``memory_source`` says which).
+from before its warm-up call to the end of the timed runs, sampled every millisecond (``memory_source`` says which).
 """
 from __future__ import annotations
 
@@ -148,9 +148,10 @@ def time_method(m: Method, params: Any, buffers: Buffers, *, runs: int = MIN_RUN
     else:
         fn = inference_fn(m)
         mem, source = None, "rss"
-    out = _block(fn(params, buffers))  # warm-up
     times = []
+    # The resident-set window opens before the warm-up: foreign code allocates its buffers there.
     with _RssPeak() as rss:
+        out = _block(fn(params, buffers))  # warm-up
         for _ in range(runs):
             t0 = time.perf_counter()
             out = _block(fn(params, buffers))
