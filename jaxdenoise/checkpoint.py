@@ -2,6 +2,8 @@
 
 Keys in the ``.npz`` are the '/'-joined dict path of each leaf; params are nested dicts (and
 lists/tuples, stored with integer keys marked ``#i``) of arrays, as every method's ``init`` returns.
+An empty dict or list (a parameter-free layer) is kept as a zero-size marker entry ``#{}`` / ``#[]``,
+so the structure round-trips exactly.
 Both files are written atomically (`fsutil.atomic_path`).
 """
 from __future__ import annotations
@@ -22,7 +24,9 @@ CONFIG_FILE = "config.json"
 
 def flatten(tree: Any, prefix: str = "") -> dict[str, np.ndarray]:
     out: dict[str, np.ndarray] = {}
-    if isinstance(tree, dict):
+    if isinstance(tree, (dict, list, tuple)) and len(tree) == 0:
+        out[prefix + ("#{}" if isinstance(tree, dict) else "#[]")] = np.zeros(0, np.float32)
+    elif isinstance(tree, dict):
         for k, v in tree.items():
             if "/" in str(k) or str(k).startswith("#"):
                 raise ValueError(f"param key {k!r} may not contain '/' or start with '#'")
@@ -33,7 +37,10 @@ def flatten(tree: Any, prefix: str = "") -> dict[str, np.ndarray]:
     elif tree is None:
         pass
     else:
-        out[prefix.rstrip("/")] = np.asarray(tree)
+        arr = np.asarray(tree)
+        if arr.dtype.kind not in "biuf":  # np.savez would pickle object arrays: never
+            raise ValueError(f"param '{prefix.rstrip('/')}' has dtype {arr.dtype}; expected a numeric array")
+        out[prefix.rstrip("/")] = arr
     return out
 
 
@@ -51,6 +58,10 @@ def unflatten(flat: dict[str, np.ndarray]) -> Any:
 def _lists(node: Any) -> Any:
     if not isinstance(node, dict):
         return node
+    if set(node) == {"#{}"}:
+        return {}
+    if set(node) == {"#[]"}:
+        return []
     node = {k: _lists(v) for k, v in node.items()}
     if node and all(k.startswith("#") for k in node):
         return [node[f"#{i}"] for i in range(len(node))]

@@ -1,0 +1,33 @@
+import json
+
+import numpy as np
+import pytest
+
+from jaxdenoise import checkpoint
+
+
+def test_roundtrip_nested_structure_with_empty_layers(tmp_path):
+    params = {"net": [{"w": np.ones((2, 3), np.float32), "b": np.zeros(3, np.float32)}, {},
+                      {"w": np.arange(6.0).reshape(3, 2)}], "norm": {"mean": np.float32(1.5)}, "empty": []}
+    checkpoint.save(tmp_path / "ck", params, extra={"step": 7})
+    back, meta = checkpoint.load(tmp_path / "ck")
+    assert isinstance(back["net"], list) and back["net"][1] == {} and back["empty"] == []
+    np.testing.assert_array_equal(back["net"][2]["w"], params["net"][2]["w"])  # exact
+    assert float(back["norm"]["mean"]) == 1.5 and meta["step"] == 7
+
+
+def test_reserved_keys_and_missing_files(tmp_path):
+    with pytest.raises(ValueError, match="may not contain '/'"):
+        checkpoint.save(tmp_path / "x", {"a/b": np.zeros(1)})
+    with pytest.raises(FileNotFoundError, match="no parameter file"):
+        checkpoint.load(tmp_path / "nothing")
+
+
+def test_save_is_atomic_and_never_pickles(tmp_path):
+    checkpoint.save(tmp_path / "ck", {"w": np.ones(2)})
+    before = (tmp_path / "ck" / "params.npz").read_bytes()
+    with pytest.raises(ValueError):
+        checkpoint.save(tmp_path / "ck", {"w": np.array([object()], dtype=object)})  # refuses objects
+    assert (tmp_path / "ck" / "params.npz").read_bytes() == before
+    assert sorted(p.name for p in (tmp_path / "ck").iterdir()) == ["config.json", "params.npz"]
+    json.loads((tmp_path / "ck" / "config.json").read_text())
