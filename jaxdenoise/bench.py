@@ -268,7 +268,7 @@ def write_reports(report: dict, out_dir: str | os.PathLike) -> None:
                                           "skipped": report["skipped"]})
     write_json(out_dir / "config.json", report["config"])
     cfg = report["config"]
-    md = [f"# Error against run time\n",
+    md = ["# Error against run time\n",
           f"Data: `{cfg['data_dir']}` ({cfg['shots']} shot(s), {cfg['renders']} render(s)); "
           f"device: {cfg['device']}, {cfg['cpu_count']} cores; jax {cfg['jax']}.",
           f"RelMSE = mean((x - ref)^2 / (ref^2 + 0.01)); SSIM and PSNR on clip(x, 0, 1)^(1/2.2); "

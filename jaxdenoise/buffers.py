@@ -168,6 +168,15 @@ class Buffers:
 jax.tree_util.register_dataclass(Buffers, data_fields=list(ALL_FIELDS), meta_fields=[])
 
 
+def with_variances(fields: Iterable[str]) -> frozenset[str]:
+    """The given fields plus their variance buffers (``color`` -> ``color_var``, ``normal`` -> ``normal_var``)."""
+    out = set(fields)
+    for f in list(out):
+        if f"{f}_var" in CHANNELS:
+            out.add(f"{f}_var")
+    return frozenset(out)
+
+
 def stack(frames: Iterable[Buffers]) -> Buffers:
     """Stack frames with identical present buffers along a new leading axis."""
     frames = list(frames)

@@ -1,5 +1,4 @@
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -56,3 +55,9 @@ def test_only_keeps_color_and_named():
 def test_channel_table_is_consistent():
     names = [c for chans in CHANNELS.values() for c in chans]
     assert len(names) == len(set(names))
+
+
+def test_with_variances():
+    from jaxdenoise.buffers import with_variances
+
+    assert with_variances({"color", "normal", "dx"}) == {"color", "color_var", "normal", "normal_var", "dx"}

@@ -70,6 +70,16 @@ def drop_constant_features(features: Sequence[Any], feature_vars: Sequence[Any],
     return ([features[k] for k in keep], [feature_vars[k] for k in keep], [lam_features[k] for k in keep])
 
 
+def _color_var(color_var: Any, col: Any, hw: tuple[int, int]) -> Any:
+    """The colour variance as an image with 1 or C channels, checked to be >= 0 (when concrete)."""
+    cvar = as_image(color_var, "color_var", hw=hw)
+    if cvar.shape[-1] not in (1, col.shape[-1]):
+        raise FilterError(f"argument 'color_var' has {cvar.shape[-1]} channels; expected 1 or {col.shape[-1]}")
+    if is_concrete(color_var) and np.any(np.asarray(color_var) < 0):
+        raise FilterError("argument 'color_var' has negative values; a variance must be >= 0")
+    return cvar
+
+
 def _is_constant(f: Any) -> bool:
     if f is None or not is_concrete(f):
         return False
@@ -181,11 +191,7 @@ def cross_bilateral(color, color_var, features: Sequence[Any], feature_vars: Seq
     hw = col.shape[:2]
     cvar = None
     if color_var is not None:
-        cvar = as_image(color_var, "color_var", hw=hw)
-        if cvar.shape[-1] not in (1, col.shape[-1]):
-            raise FilterError(f"argument 'color_var' has {cvar.shape[-1]} channels; expected 1 or {col.shape[-1]}")
-        if is_concrete(color_var) and np.any(np.asarray(color_var) < 0):
-            raise FilterError("argument 'color_var' has negative values; a variance must be >= 0")
+        cvar = _color_var(color_var, col, hw)
     _check_features(features, feature_vars, lam_features, hw)
     feats = [as_image(f, f"features[{k}]", hw=hw) for k, f in enumerate(features)]
     fvars = [_var_map(v, f"feature_vars[{k}]", hw) for k, v in enumerate(feature_vars)]

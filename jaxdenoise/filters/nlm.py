@@ -35,11 +35,10 @@ from typing import Any, Sequence
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
-from ._common import FilterError, as_image, as_param, check_radius, compute_dtype, is_concrete
+from ._common import FilterError, as_image, as_param, check_radius, compute_dtype
 from ._window import Neighbours, channel_sum, channel_sum_sq, clamp_dist, from_planar, to_planar, window_sums
-from .bilateral import DELTA, ZETA, _check_features, _is_constant, _var_map
+from .bilateral import DELTA, ZETA, _check_features, _color_var, _is_constant, _var_map
 
 
 def _box(x: jax.Array, r: int, h: int, w: int) -> jax.Array:
@@ -110,11 +109,7 @@ def cross_nlm(color, color_var, features: Sequence[Any], feature_vars: Sequence[
     hw = col.shape[:2]
     if color_var is None:
         raise FilterError("argument 'color_var' is None; cross_nlm needs the colour variance (Eq. 17)")
-    cvar = as_image(color_var, "color_var", hw=hw)
-    if cvar.shape[-1] not in (1, col.shape[-1]):
-        raise FilterError(f"argument 'color_var' has {cvar.shape[-1]} channels; expected 1 or {col.shape[-1]}")
-    if is_concrete(color_var) and np.any(np.asarray(color_var) < 0):
-        raise FilterError("argument 'color_var' has negative values; a variance must be >= 0")
+    cvar = _color_var(color_var, col, hw)
     _check_features(features, feature_vars, lam_features, hw)
     feats = [as_image(f, f"features[{k}]", hw=hw) for k, f in enumerate(features)]
     fvars = [_var_map(v, f"feature_vars[{k}]", hw) for k, v in enumerate(feature_vars)]

@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..buffers import Buffers, BuffersError
+from ..buffers import Buffers, BuffersError, with_variances
 from ..filters import cross_bilateral, cross_nlm, prefilter_features, remove_spikes
 
 # The paper's K = 5 additional features (Sec. 3.2): world position, shading normal, texture at
@@ -77,10 +77,7 @@ def _check_config(config: Config) -> None:
 
 def needs(config: Config) -> frozenset[str]:
     """Colour, its variance, and every configured feature with its variance (optional ones)."""
-    out = {"color", "color_var"}
-    for f in config.features:
-        out |= {f, f"{f}_var"}
-    return frozenset(out)
+    return with_variances({"color", *config.features})
 
 
 def required(config: Config) -> frozenset[str]:

@@ -41,7 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import nn
-from ..buffers import Buffers, BuffersError
+from ..buffers import Buffers, BuffersError, with_variances
 from ..filters import cross_bilateral, cross_nlm, prefilter_features, remove_spikes, spatiotemporal_cross_bilateral
 from .lbf_features import CATEGORIES, feature_categories, num_features, secondary_features
 
@@ -101,10 +101,7 @@ def _check_config(config: Config) -> None:
 
 def needs(config: Config) -> frozenset[str]:
     """Colour, its variance, and each configured feature with its variance (nothing else)."""
-    out = {"color", "color_var"}
-    for f in config.features:
-        out |= {f, f"{f}_var"}
-    return frozenset(out)
+    return with_variances({"color", *config.features})
 
 
 # -- network -----------------------------------------------------------------------------------
