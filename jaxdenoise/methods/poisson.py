@@ -15,14 +15,14 @@ import jax
 from ..buffers import Buffers
 from ..solvers import poisson as _sp
 
-_SOLVERS = {"l2": ("dct", "cg"), "l1": ("admm", "irls")}
+_SOLVERS = {"l2": ("dct", "cg"), "l1": ("irls", "admm")}  # first = default (docs/methods/poisson.md)
 
 
 @dataclasses.dataclass(frozen=True)
 class Config:
     alpha: float = 0.2        # weight of the base term (Lehtinen 2013 / Kettunen 2015 presets use 0.2)
     norm: str = "l2"          # 'l2' | 'l1' (Guo 2019 Eq. 1, p = 2 or 1)
-    solver: str | None = None  # l2: 'dct' (exact, default) | 'cg'; l1: 'admm' (default) | 'irls'
+    solver: str | None = None  # l2: 'dct' (exact, default) | 'cg'; l1: 'irls' (default) | 'admm'
     cg_iters: int = 1000      # 'cg': max iterations of the L2 CG (tolerance 1e-6 relative)
     irls_iters: int = 20      # 'irls': reweighting rounds (the common 20 x 50 preset)
     irls_cg_iters: int = 50   # 'irls': CG iterations per round
