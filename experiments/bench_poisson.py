@@ -10,12 +10,11 @@ base = clean + noise, gradients = exact differences + smaller noise, with sparse
 the statistics are printed in the report), since no rendered gradient-domain frames existed when
 this was run.
 
-    JAX_PLATFORMS=cpu python experiments/bench_poisson.py [--quick] [--repeats 5]
+    JAX_PLATFORMS=cpu python experiments/bench_poisson.py [--quick] [--repeats 5] [--sections dct,l2,cg,l1]
 """
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import time
@@ -110,6 +109,9 @@ def main() -> None:
     ap.add_argument("--frame", help="gradient-domain EXR (R G B dx.* dy.*)")
     ap.add_argument("--reference", help="clean reference EXR for --frame")
     ap.add_argument("--out", default=str(OUT))
+    ap.add_argument("--sections", default="dct,l2,cg,l1",
+                    help="comma list of tables to run: dct (transform peer), l2 (DCT vs CG across alpha), "
+                         "cg (CG iteration sweep), l1 (IRLS vs ADMM)")
     args = ap.parse_args()
     if args.quick:
         args.height, args.width, args.repeats = 90, 160, 3
@@ -150,96 +152,101 @@ def main() -> None:
                f"N(0, {NOISE['grad_outlier_scale']}); seed {NOISE['seed']}.", ""]
     md += [f"Input base image RelMSE: {rel(base):.4g}.", ""]
 
-    # -- DCT transform peer: ours (rfft) vs jax.scipy.fft.dctn (complex fft) --------------------------
-    from jax.scipy.fft import dctn, idctn
-    ours = jax.jit(lambda a: idct2_cwh(dct2_cwh(a)))
-    ref = jax.jit(lambda a: idctn(dctn(a, axes=(0, 1), norm="ortho"), axes=(0, 1), norm="ortho"))
-    _, t_ours, _, _ = timeit(ours, B, repeats=R)
-    _, t_ref, _, _ = timeit(ref, B, repeats=R)
-    records += [dict(table="dct", impl="jaxdenoise rfft", seconds=t_ours),
-                dict(table="dct", impl="jax.scipy.fft.dctn", seconds=t_ref)]
-    md += ["## DCT-II forward + inverse (HWC, 3 channels)", "", "| implementation | seconds | ratio |",
-           "|---|---|---|", f"| jaxdenoise.solvers.dct (real FFT) | {t_ours:.4f} | 1.00 |",
-           f"| jax.scipy.fft.dctn / idctn | {t_ref:.4f} | {t_ref / t_ours:.2f} |", ""]
-    flush()
-    print("dct", t_ours, t_ref, flush=True)
-
-    # -- L2 across alpha: DCT vs jaxopt CG ------------------------------------------------------------
-    alphas = [1e-6, 1e-4, 1e-2, 0.2, 1.0, 1e2, 1e6] if not args.quick else [1e-6, 0.2, 1e6]
+    sections = set(args.sections.split(","))
     dct_fn = jax.jit(solvers.poisson_l2_dct)
-    cg_max = 1000
-    cg_fn = jax.jit(lambda b, x, y, a: solvers.poisson_l2_cg(b, x, y, a, maxiter=cg_max, tol=1e-6))
-    md += ["## L2: exact DCT solve vs jaxopt CG, across alpha", "",
-           f"CG: per channel, warm start at the base, stop at relative (float32 recursive) residual 1e-6 or "
-           f"{cg_max} iterations. Goal for the DCT: <= 25 ms and residual <= 1e-5 for every alpha.", "",
-           "| alpha | DCT s | DCT compile s | DCT residual | CG s | CG residual | CG / DCT time | max abs(CG - DCT) | RelMSE (DCT) |",
-           "|---|---|---|---|---|---|---|---|---|"]
-    for a in alphas:
-        aa = jnp.float32(a)
-        xd, td, cd, _ = timeit(dct_fn, B, X, Y, aa, repeats=R)
-        xc, tc, _, nc = timeit(cg_fn, B, X, Y, aa, repeats=R)
-        rd, rc = residual64(xd, base, dx, dy, a), residual64(xc, base, dx, dy, a)
-        diff = float(jnp.max(jnp.abs(xc - xd)))
-        records += [dict(table="l2", solver="dct", alpha=a, seconds=td, compile=cd, residual=rd, relmse=rel(xd)),
-                    dict(table="l2", solver=f"cg(maxiter={cg_max},tol=1e-6)", alpha=a, seconds=tc, residual=rc,
-                         relmse=rel(xc), repeats=nc, max_abs_diff_to_dct=diff)]
-        md.append(f"| {a:g} | {td:.4f} | {cd:.2f} | {rd:.2e} | {tc:.3f} | {rc:.2e} | {tc / td:.1f} | {diff:.2e} | {rel(xd):.4g} |")
+    if "dct" in sections:
+        # -- DCT transform peer: ours (rfft) vs jax.scipy.fft.dctn (complex fft) --------------------------
+        from jax.scipy.fft import dctn, idctn
+        ours = jax.jit(lambda a: idct2_cwh(dct2_cwh(a)))
+        ref = jax.jit(lambda a: idctn(dctn(a, axes=(0, 1), norm="ortho"), axes=(0, 1), norm="ortho"))
+        _, t_ours, _, _ = timeit(ours, B, repeats=R)
+        _, t_ref, _, _ = timeit(ref, B, repeats=R)
+        records += [dict(table="dct", impl="jaxdenoise rfft", seconds=t_ours),
+                    dict(table="dct", impl="jax.scipy.fft.dctn", seconds=t_ref)]
+        md += ["## DCT-II forward + inverse (HWC, 3 channels)", "", "| implementation | seconds | ratio |",
+               "|---|---|---|", f"| jaxdenoise.solvers.dct (real FFT) | {t_ours:.4f} | 1.00 |",
+               f"| jax.scipy.fft.dctn / idctn | {t_ref:.4f} | {t_ref / t_ours:.2f} |", ""]
         flush()
-        print("l2", a, td, rd, tc, rc, flush=True)
-    md.append("")
+        print("dct", t_ours, t_ref, flush=True)
 
-    # -- CG settings at small and preset alpha: residual against time ---------------------------------
-    md += ["## L2 jaxopt CG: residual against time (iteration cap, tol 1e-12)", "",
-           "| alpha | CG iterations | seconds | residual | CG / DCT time (same alpha) |", "|---|---|---|---|---|"]
-    iters_list = [20, 50, 200] if not args.quick else [50, 200]
-    for a in ([1e-6, 0.2] if not args.quick else [1e-6]):
-        _, td, _, _ = timeit(dct_fn, B, X, Y, jnp.float32(a), repeats=R)
-        for it in iters_list:
-            f = jax.jit(lambda b, x, y, al, it=it: solvers.poisson_l2_cg(b, x, y, al, maxiter=it, tol=1e-12))
-            xc, tc, _, nc = timeit(f, B, X, Y, jnp.float32(a), repeats=R)
-            rc = residual64(xc, base, dx, dy, a)
-            records.append(dict(table="cg_sweep", alpha=a, iters=it, seconds=tc, residual=rc, dct_seconds=td,
-                                repeats=nc))
-            md.append(f"| {a:g} | {it} | {tc:.3f} | {rc:.2e} | {tc / td:.0f} |")
+    if "l2" in sections:
+        # -- L2 across alpha: DCT vs jaxopt CG ------------------------------------------------------------
+        alphas = [1e-6, 1e-4, 1e-2, 0.2, 1.0, 1e2, 1e6] if not args.quick else [1e-6, 0.2, 1e6]
+        cg_max = 1000
+        cg_fn = jax.jit(lambda b, x, y, a: solvers.poisson_l2_cg(b, x, y, a, maxiter=cg_max, tol=1e-6))
+        md += ["## L2: exact DCT solve vs jaxopt CG, across alpha", "",
+               f"CG: per channel, warm start at the base, stop at relative (float32 recursive) residual 1e-6 or "
+               f"{cg_max} iterations. Goal for the DCT: <= 25 ms and residual <= 1e-5 for every alpha.", "",
+               "| alpha | DCT s | DCT compile s | DCT residual | CG s | CG residual | CG / DCT time | max abs(CG - DCT) | RelMSE (DCT) |",
+               "|---|---|---|---|---|---|---|---|---|"]
+        for a in alphas:
+            aa = jnp.float32(a)
+            xd, td, cd, _ = timeit(dct_fn, B, X, Y, aa, repeats=R)
+            xc, tc, _, nc = timeit(cg_fn, B, X, Y, aa, repeats=R)
+            rd, rc = residual64(xd, base, dx, dy, a), residual64(xc, base, dx, dy, a)
+            diff = float(jnp.max(jnp.abs(xc - xd)))
+            records += [dict(table="l2", solver="dct", alpha=a, seconds=td, compile=cd, residual=rd, relmse=rel(xd)),
+                        dict(table="l2", solver=f"cg(maxiter={cg_max},tol=1e-6)", alpha=a, seconds=tc, residual=rc,
+                             relmse=rel(xc), repeats=nc, max_abs_diff_to_dct=diff)]
+            md.append(f"| {a:g} | {td:.4f} | {cd:.2f} | {rd:.2e} | {tc:.3f} | {rc:.2e} | {tc / td:.1f} | {diff:.2e} | {rel(xd):.4g} |")
             flush()
-            print("cg", a, it, tc, rc, flush=True)
-    md.append("")
+            print("l2", a, td, rd, tc, rc, flush=True)
+        md.append("")
 
-    # -- L1 at the preset alpha: IRLS (jaxopt CG) vs ADMM (DCT) ---------------------------------------
-    a = 0.2
-    aa = jnp.float32(a)
-    ref_iters = 1000 if not args.quick else 1000
-    x_ref = jax.jit(lambda b, x, y, al: solvers.poisson_l1_admm(b, x, y, al, iters=ref_iters))(B, X, Y, aa)
-    x_ref2 = jax.jit(lambda b, x, y, al: solvers.poisson_l1_admm(b, x, y, al, iters=ref_iters // 2))(B, X, Y, aa)
-    e_ref = energy64(x_ref, base, dx, dy, a, "l1")
-    e_ref2 = energy64(x_ref2, base, dx, dy, a, "l1")
-    x_l2 = dct_fn(B, X, Y, aa)
-    settings = [("irls", dict(irls_iters=20, cg_iters=50)), ("irls", dict(irls_iters=10, cg_iters=50)),
-                ("irls", dict(irls_iters=20, cg_iters=20)),
-                ("admm", dict(iters=20)), ("admm", dict(iters=50)), ("admm", dict(iters=100)),
-                ("admm", dict(iters=200))]
-    if args.quick:
-        settings = [("irls", dict(irls_iters=20, cg_iters=50)), ("admm", dict(iters=20)), ("admm", dict(iters=50))]
-    md += ["## L1 (alpha = 0.2): IRLS with jaxopt CG (classical) vs ADMM with the exact DCT step", "",
-           f"Energy gap = (E1(x) - E*) / E*, with E* = {e_ref:.6g} the L1 energy after {ref_iters} ADMM iterations "
-           f"({ref_iters // 2} iterations give {(e_ref2 - e_ref) / e_ref:.1e} above it). "
-           f"L2 (DCT) energy gap for comparison: {(energy64(x_l2, base, dx, dy, a, 'l1') - e_ref) / e_ref:.3e}, "
-           f"RelMSE {rel(x_l2):.4g}. Goal for the converged L1 solve: <= 0.67 s (Guo 2019 Sec. 6.7, GPU).", "",
-           "| solver | setting | seconds | compile s | energy gap | RelMSE | max abs(x - x*) |",
-           "|---|---|---|---|---|---|---|"]
-    for name, kw in settings:
-        fn = solvers.poisson_l1_irls if name == "irls" else solvers.poisson_l1_admm
-        f = jax.jit(lambda b, x, y, al, fn=fn, kw=kw: fn(b, x, y, al, **kw))
-        x1, t1, c1, n1 = timeit(f, B, X, Y, aa, repeats=R)
-        gap = (energy64(x1, base, dx, dy, a, "l1") - e_ref) / e_ref
-        dmax = float(jnp.max(jnp.abs(x1 - x_ref)))
-        setting = ", ".join(f"{k}={v}" for k, v in kw.items())
-        records.append(dict(table="l1", solver=name, alpha=a, **kw, seconds=t1, compile=c1, energy_gap=gap,
-                            relmse=rel(x1), max_abs_diff_to_ref=dmax, repeats=n1))
-        md.append(f"| {name} | {setting} | {t1:.3f} | {c1:.1f} | {gap:.2e} | {rel(x1):.4g} | {dmax:.3g} |")
-        flush()
-        print("l1", name, kw, t1, gap, flush=True)
-    md.append("")
+    if "cg" in sections:
+        # -- CG settings at small and preset alpha: residual against time ---------------------------------
+        md += ["## L2 jaxopt CG: residual against time (iteration cap, tol 1e-12)", "",
+               "| alpha | CG iterations | seconds | residual | CG / DCT time (same alpha) |", "|---|---|---|---|---|"]
+        iters_list = [20, 50, 200] if not args.quick else [50, 200]
+        for a in ([1e-6, 0.2] if not args.quick else [1e-6]):
+            _, td, _, _ = timeit(dct_fn, B, X, Y, jnp.float32(a), repeats=R)
+            for it in iters_list:
+                f = jax.jit(lambda b, x, y, al, it=it: solvers.poisson_l2_cg(b, x, y, al, maxiter=it, tol=1e-12))
+                xc, tc, _, nc = timeit(f, B, X, Y, jnp.float32(a), repeats=R)
+                rc = residual64(xc, base, dx, dy, a)
+                records.append(dict(table="cg_sweep", alpha=a, iters=it, seconds=tc, residual=rc, dct_seconds=td,
+                                    repeats=nc))
+                md.append(f"| {a:g} | {it} | {tc:.3f} | {rc:.2e} | {tc / td:.0f} |")
+                flush()
+                print("cg", a, it, tc, rc, flush=True)
+        md.append("")
+
+    if "l1" in sections:
+        # -- L1 at the preset alpha: IRLS (jaxopt CG) vs ADMM (DCT) ---------------------------------------
+        a = 0.2
+        aa = jnp.float32(a)
+        ref_iters = 1000 if not args.quick else 1000
+        x_ref = jax.jit(lambda b, x, y, al: solvers.poisson_l1_admm(b, x, y, al, iters=ref_iters))(B, X, Y, aa)
+        x_ref2 = jax.jit(lambda b, x, y, al: solvers.poisson_l1_admm(b, x, y, al, iters=ref_iters // 2))(B, X, Y, aa)
+        e_ref = energy64(x_ref, base, dx, dy, a, "l1")
+        e_ref2 = energy64(x_ref2, base, dx, dy, a, "l1")
+        x_l2 = dct_fn(B, X, Y, aa)
+        settings = [("irls", dict(irls_iters=20, cg_iters=50)), ("irls", dict(irls_iters=10, cg_iters=50)),
+                    ("irls", dict(irls_iters=20, cg_iters=20)),
+                    ("admm", dict(iters=20)), ("admm", dict(iters=50)), ("admm", dict(iters=100)),
+                    ("admm", dict(iters=200))]
+        if args.quick:
+            settings = [("irls", dict(irls_iters=20, cg_iters=50)), ("admm", dict(iters=20)), ("admm", dict(iters=50))]
+        md += ["## L1 (alpha = 0.2): IRLS with jaxopt CG (classical) vs ADMM with the exact DCT step", "",
+               f"Energy gap = (E1(x) - E*) / E*, with E* = {e_ref:.6g} the L1 energy after {ref_iters} ADMM iterations "
+               f"({ref_iters // 2} iterations give {(e_ref2 - e_ref) / e_ref:.1e} above it). "
+               f"L2 (DCT) energy gap for comparison: {(energy64(x_l2, base, dx, dy, a, 'l1') - e_ref) / e_ref:.3e}, "
+               f"RelMSE {rel(x_l2):.4g}. Goal for the converged L1 solve: <= 0.67 s (Guo 2019 Sec. 6.7, GPU).", "",
+               "| solver | setting | seconds | compile s | energy gap | RelMSE | max abs(x - x*) |",
+               "|---|---|---|---|---|---|---|"]
+        for name, kw in settings:
+            fn = solvers.poisson_l1_irls if name == "irls" else solvers.poisson_l1_admm
+            f = jax.jit(lambda b, x, y, al, fn=fn, kw=kw: fn(b, x, y, al, **kw))
+            x1, t1, c1, n1 = timeit(f, B, X, Y, aa, repeats=R)
+            gap = (energy64(x1, base, dx, dy, a, "l1") - e_ref) / e_ref
+            dmax = float(jnp.max(jnp.abs(x1 - x_ref)))
+            setting = ", ".join(f"{k}={v}" for k, v in kw.items())
+            records.append(dict(table="l1", solver=name, alpha=a, **kw, seconds=t1, compile=c1, energy_gap=gap,
+                                relmse=rel(x1), max_abs_diff_to_ref=dmax, repeats=n1))
+            md.append(f"| {name} | {setting} | {t1:.3f} | {c1:.1f} | {gap:.2e} | {rel(x1):.4g} | {dmax:.3g} |")
+            flush()
+            print("l1", name, kw, t1, gap, flush=True)
+        md.append("")
     md.append(f"Load average at end: {os.getloadavg()[0]:.1f}.")
     flush()
 
