@@ -234,6 +234,12 @@ def summarize(records: list[dict]) -> list[dict]:
     for r in records:
         groups.setdefault((r["method"], r["spp"]), []).append(r)
     order = {m: i for i, m in enumerate(dict.fromkeys(r["method"] for r in records))}
+    # Resident-set growth (foreign code) shows only where the process first allocates: report the
+    # method's maximum over all its frames, not over one spp's frames.
+    rss_peak: dict[str, int] = {}
+    for r in records:
+        if r.get("memory_source") == "rss":
+            rss_peak[r["method"]] = max(rss_peak.get(r["method"], 0), r["peak_bytes"])
     rows = []
     for (method, spp), rs in sorted(groups.items(), key=lambda kv: (order[kv[0][0]], kv[0][1] or 0)):
         render = [r["render_seconds"] for r in rs]
@@ -244,7 +250,7 @@ def summarize(records: list[dict]) -> list[dict]:
             "psnr": float(np.mean([r["psnr"] for r in rs])),
             "seconds": float(np.median([r["seconds"] for r in rs])),
             "compile_seconds": float(max(r["compile_seconds"] for r in rs)),
-            "peak_mb": float(max(r["peak_bytes"] for r in rs)) / 2**20,
+            "peak_mb": float(rss_peak.get(method, max(r["peak_bytes"] for r in rs))) / 2**20,
             "render_seconds": float(np.median(render)) if all(x is not None for x in render) else None,
         })
     return rows
@@ -258,6 +264,14 @@ def markdown_table(rows: list[dict]) -> str:
                      f"{r['relmse']:.4g} | {r['ssim']:.4f} | {r['psnr']:.2f} | {1e3 * r['seconds']:.2f} | "
                      f"{r['compile_seconds']:.2f} | {r['peak_mb']:.1f} |")
     return "\n".join(lines)
+
+
+def load_report(out_dir: str | os.PathLike) -> dict:
+    """Read back what `write_reports` wrote (to re-render tables and plots without re-running)."""
+    out_dir = Path(out_dir)
+    res = json.loads((out_dir / "results.json").read_text())
+    return {"records": res["records"], "skipped": res["skipped"],
+            "config": json.loads((out_dir / "config.json").read_text())}
 
 
 def write_reports(report: dict, out_dir: str | os.PathLike) -> None:
@@ -315,11 +329,12 @@ def plot(rows: list[dict], path: str | os.PathLike) -> Path:
                 ax.annotate(f"{r['spp']}", (x, y), textcoords="offset points", xytext=(3, 3), fontsize=6)
     ax.set_xscale("log")
     ax.set_yscale("log")
-    from matplotlib.ticker import LogFormatter
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
-    for axis in (ax.xaxis, ax.yaxis):  # plain numbers, also on minor ticks of short decades
-        axis.set_major_formatter(LogFormatter(labelOnlyBase=False, minor_thresholds=(2, 0.4)))
-        axis.set_minor_formatter(LogFormatter(labelOnlyBase=False, minor_thresholds=(2, 0.4)))
+    for axis in (ax.xaxis, ax.yaxis):  # 1-2-5 ticks with plain labels: readable over short and long spans
+        axis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+        axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+        axis.set_minor_formatter(NullFormatter())
     ax.set_xlabel("render + denoise time (s)" if total_time else "denoise time (s, median)")
     ax.set_ylabel("RelMSE")
     ax.grid(True, which="both", alpha=0.3)
