@@ -66,8 +66,17 @@ def drop_constant_features(features: Sequence[Any], feature_vars: Sequence[Any],
     dropping it leaves the output bit-identical and saves its share of the work. Traced features
     (under ``jit``) are kept. Returns the three filtered lists.
     """
-    keep = [k for k, f in enumerate(features) if not _is_constant(f)]
-    return ([features[k] for k in keep], [feature_vars[k] for k in keep], [lam_features[k] for k in keep])
+    return _drop_constant(features, features, feature_vars, lam_features)
+
+
+def _drop_constant(raw_features: Sequence[Any], *lists: Sequence[Any]) -> tuple[list, ...]:
+    """Filter each of ``lists`` (parallel to ``raw_features``) to the non-constant features.
+
+    Constancy is judged on the raw inputs, which are concrete outside ``jit`` even when the filter's
+    converted copies are traced (so a closed-over constant feature is dropped under ``jit`` too).
+    """
+    keep = [k for k, f in enumerate(raw_features) if not _is_constant(f)]
+    return tuple([lst[k] for k in keep] for lst in lists)
 
 
 def _color_var(color_var: Any, col: Any, hw: tuple[int, int]) -> Any:
@@ -198,8 +207,7 @@ def cross_bilateral(color, color_var, features: Sequence[Any], feature_vars: Seq
     lams_f = [as_param(l, f"lam_features[{k}]", hw) for k, l in enumerate(lam_features)]
     lam_s = as_param(lam_spatial, "lam_spatial", hw)
     lam_c = None if cvar is None else as_param(lam_color, "lam_color", hw)
-    keep = [k for k, f in enumerate(features) if not _is_constant(f)]  # raw inputs: concrete outside jit
-    feats, fvars, lams_f = [feats[k] for k in keep], [fvars[k] for k in keep], [lams_f[k] for k in keep]
+    feats, fvars, lams_f = _drop_constant(features, feats, fvars, lams_f)
 
     out_dtype = col.dtype if jnp.issubdtype(col.dtype, jnp.floating) else jnp.float32
     dt = compute_dtype(col, lam_s, *feats, *lams_f, *([lam_c] if lam_c is not None else []))
@@ -253,8 +261,7 @@ def spatiotemporal_cross_bilateral(color, color_var, features: Sequence[Any], fe
     lam_s = as_param(lam_spatial, "lam_spatial", hw)
     lam_c = None if cvar is None else as_param(lam_color, "lam_color", hw)
     lam_t = as_param(lam_temporal, "lam_temporal", hw)
-    keep = [k for k, f in enumerate(features) if not _is_constant(f)]  # raw inputs: concrete outside jit
-    feats, fvars, lams_f = [feats[k] for k in keep], [fvars[k] for k in keep], [lams_f[k] for k in keep]
+    feats, fvars, lams_f = _drop_constant(features, feats, fvars, lams_f)
 
     out_dtype = col.dtype if jnp.issubdtype(col.dtype, jnp.floating) else jnp.float32
     dt = compute_dtype(col, lam_s, lam_t, *feats, *lams_f)

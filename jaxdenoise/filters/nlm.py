@@ -38,7 +38,7 @@ import jax.numpy as jnp
 
 from ._common import FilterError, as_image, as_param, check_radius, compute_dtype
 from ._window import Neighbours, channel_sum, channel_sum_sq, clamp_dist, from_planar, to_planar, window_sums
-from .bilateral import DELTA, ZETA, _check_features, _color_var, _is_constant, _var_map
+from .bilateral import DELTA, ZETA, _check_features, _color_var, _drop_constant, _var_map
 
 
 def _box(x: jax.Array, r: int, h: int, w: int) -> jax.Array:
@@ -115,8 +115,7 @@ def cross_nlm(color, color_var, features: Sequence[Any], feature_vars: Sequence[
     fvars = [_var_map(v, f"feature_vars[{k}]", hw) for k, v in enumerate(feature_vars)]
     lams_f = [as_param(l, f"lam_features[{k}]", hw) for k, l in enumerate(lam_features)]
     lam_p = as_param(lam_patch, "lam_patch", hw)
-    keep = [k for k, f in enumerate(features) if not _is_constant(f)]  # raw inputs: concrete outside jit
-    feats, fvars, lams_f = [feats[k] for k in keep], [fvars[k] for k in keep], [lams_f[k] for k in keep]
+    feats, fvars, lams_f = _drop_constant(features, feats, fvars, lams_f)
 
     out_dtype = col.dtype if jnp.issubdtype(col.dtype, jnp.floating) else jnp.float32
     dt = compute_dtype(col, cvar, lam_p, *feats, *lams_f)
