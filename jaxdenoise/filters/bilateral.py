@@ -89,6 +89,15 @@ def _color_var(color_var: Any, col: Any, hw: tuple[int, int]) -> Any:
     return cvar
 
 
+def _feature_inputs(features, feature_vars, lam_features, hw) -> tuple[list, list, list]:
+    """Check and convert the feature stacks of the 2-D cross filters; constant features are dropped."""
+    _check_features(features, feature_vars, lam_features, hw)
+    feats = [as_image(f, f"features[{k}]", hw=hw) for k, f in enumerate(features)]
+    fvars = [_var_map(v, f"feature_vars[{k}]", hw) for k, v in enumerate(feature_vars)]
+    lams_f = [as_param(l, f"lam_features[{k}]", hw) for k, l in enumerate(lam_features)]
+    return _drop_constant(features, feats, fvars, lams_f)
+
+
 def _is_constant(f: Any) -> bool:
     if f is None or not is_concrete(f):
         return False
@@ -201,13 +210,9 @@ def cross_bilateral(color, color_var, features: Sequence[Any], feature_vars: Seq
     cvar = None
     if color_var is not None:
         cvar = _color_var(color_var, col, hw)
-    _check_features(features, feature_vars, lam_features, hw)
-    feats = [as_image(f, f"features[{k}]", hw=hw) for k, f in enumerate(features)]
-    fvars = [_var_map(v, f"feature_vars[{k}]", hw) for k, v in enumerate(feature_vars)]
-    lams_f = [as_param(l, f"lam_features[{k}]", hw) for k, l in enumerate(lam_features)]
+    feats, fvars, lams_f = _feature_inputs(features, feature_vars, lam_features, hw)
     lam_s = as_param(lam_spatial, "lam_spatial", hw)
     lam_c = None if cvar is None else as_param(lam_color, "lam_color", hw)
-    feats, fvars, lams_f = _drop_constant(features, feats, fvars, lams_f)
 
     out_dtype = col.dtype if jnp.issubdtype(col.dtype, jnp.floating) else jnp.float32
     dt = compute_dtype(col, lam_s, *feats, *lams_f, *([lam_c] if lam_c is not None else []))

@@ -38,7 +38,7 @@ import jax.numpy as jnp
 
 from ._common import FilterError, as_image, as_param, check_radius, compute_dtype
 from ._window import Neighbours, channel_sum, channel_sum_sq, clamp_dist, from_planar, to_planar, window_sums
-from .bilateral import DELTA, ZETA, _check_features, _color_var, _drop_constant, _var_map
+from .bilateral import DELTA, ZETA, _color_var, _feature_inputs, _var_map
 
 
 def _box(x: jax.Array, r: int, h: int, w: int) -> jax.Array:
@@ -110,12 +110,8 @@ def cross_nlm(color, color_var, features: Sequence[Any], feature_vars: Sequence[
     if color_var is None:
         raise FilterError("argument 'color_var' is None; cross_nlm needs the colour variance (Eq. 17)")
     cvar = _color_var(color_var, col, hw)
-    _check_features(features, feature_vars, lam_features, hw)
-    feats = [as_image(f, f"features[{k}]", hw=hw) for k, f in enumerate(features)]
-    fvars = [_var_map(v, f"feature_vars[{k}]", hw) for k, v in enumerate(feature_vars)]
-    lams_f = [as_param(l, f"lam_features[{k}]", hw) for k, l in enumerate(lam_features)]
+    feats, fvars, lams_f = _feature_inputs(features, feature_vars, lam_features, hw)
     lam_p = as_param(lam_patch, "lam_patch", hw)
-    feats, fvars, lams_f = _drop_constant(features, feats, fvars, lams_f)
 
     out_dtype = col.dtype if jnp.issubdtype(col.dtype, jnp.floating) else jnp.float32
     dt = compute_dtype(col, cvar, lam_p, *feats, *lams_f)
