@@ -11,6 +11,7 @@ so that load from other processes hits every contender alike):
 5. time and size of the standard training set, read from its manifest (``--train-dir``).
 
 Usage: python experiments/bench_data_gen.py [--res 128] [--spp 16] [--repeats 5]
+       python experiments/bench_data_gen.py --train-set-only   # refresh the training-set section only
 """
 from __future__ import annotations
 
@@ -47,6 +48,27 @@ def _relmse(x, ref):
     return float(np.mean((x - ref) ** 2 / (ref ** 2 + 0.01)))
 
 
+def _train_set(train_dir: str) -> dict:
+    """Size, render time, spp and reference noise of a data_gen dataset folder, from its manifest."""
+    mpath = Path(train_dir) / "manifest.json"
+    if not mpath.exists():
+        return {}
+    m = json.loads(mpath.read_text())
+    sc = m.get("scenes", {})
+    refs = [r.get("reference") or {} for r in sc.values()]
+    runs = m.get("runs", [])
+    return {"dir": str(Path(train_dir).relative_to(ROOT)) if Path(train_dir).resolve().is_relative_to(ROOT) else train_dir,
+            "scenes": len(sc), "size_mib": dataset_size_bytes(train_dir) / 2**20,
+            "render_seconds": float(sum(r.get("render_seconds", 0.0) for r in sc.values())),
+            "reference_seconds": float(sum(x.get("seconds", 0.0) for x in refs)),
+            "ref_spp": sorted({x.get("spp") for x in refs if x}),
+            "median_ref_relmse_halves": float(np.median([x["relmse_halves"] for x in refs if x])) if refs else None,
+            "spp": sorted({tuple(r["spp"]) for r in sc.values()}),
+            "commands": [r.get("command") for r in runs],
+            "run_wall_seconds": [r.get("wall_seconds") for r in runs],
+            "run_status": [r.get("status", "done") for r in runs]}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--res", type=int, default=128)
@@ -57,7 +79,20 @@ def main(argv=None) -> int:
     ap.add_argument("--train-dir", default=str(ROOT / "data" / "train_rooms"))
     ap.add_argument("--out", default=str(ROOT / "docs" / "results"))
     ap.add_argument("--from-json", default=None, help="only rewrite the markdown from a saved data_gen.json")
+    ap.add_argument("--train-set-only", action="store_true",
+                    help="re-read only the training set's manifest into the saved data_gen.json, keep the timings")
+    ap.add_argument("--train-note", default=None, help="a remark printed under the training-set section")
     a = ap.parse_args(argv)
+    if a.train_set_only:
+        from jaxdenoise.fsutil import write_json, write_text
+
+        res = json.loads((Path(a.out) / "data_gen.json").read_text())
+        res["train_set"] = _train_set(a.train_dir)
+        if a.train_note:
+            res["train_set"]["note"] = a.train_note
+        write_json(Path(a.out) / "data_gen.json", res)
+        write_text(Path(a.out) / "data_gen.md", _markdown(res))
+        return 0
     if a.from_json:
         from jaxdenoise.fsutil import write_text
 
@@ -177,20 +212,7 @@ def main(argv=None) -> int:
         print(f"{name}: path {med['path']:.2f}s ours(all) {med['ours_all']:.2f}s ratio {med['ours_all'] / med['path']:.2f}",
               file=sys.stderr)
 
-    train = {}
-    mpath = Path(a.train_dir) / "manifest.json"
-    if mpath.exists():
-        m = json.loads(mpath.read_text())
-        sc = m.get("scenes", {})
-        refs = [r.get("reference") or {} for r in sc.values()]
-        train = {"dir": str(Path(a.train_dir).relative_to(ROOT)) if Path(a.train_dir).is_relative_to(ROOT) else a.train_dir,
-                 "scenes": len(sc), "size_mib": dataset_size_bytes(a.train_dir) / 2**20,
-                 "render_seconds": float(sum(r.get("render_seconds", 0.0) for r in sc.values())),
-                 "reference_seconds": float(sum(x.get("seconds", 0.0) for x in refs)),
-                 "ref_spp": sorted({x.get("spp") for x in refs if x}),
-                 "median_ref_relmse_halves": float(np.median([x["relmse_halves"] for x in refs if x])) if refs else None,
-                 "spp": sorted({tuple(r["spp"]) for r in sc.values()}),
-                 "commands": [r.get("command") for r in m.get("runs", [])]}
+    train = _train_set(a.train_dir)
 
     res = {"variant": variant, "machine": platform.processor() or platform.machine(), "res": a.res, "spp": a.spp,
            "repeats": a.repeats, "max_depth": a.max_depth, "speed": speed_rows, "agreement": agree_rows,
@@ -270,8 +292,17 @@ def _markdown(r: dict) -> str:
                   f"references takes about {proj / 3600:.1f} h of rendering on this machine (references: "
                   f"{t['reference_seconds'] * 4096 / r_spp / 3600:.1f} h); re-running the generator with "
                   "`--ref-spp 4096` re-renders only the references."]
-        L += ["", "Generator commands:", ""]
-        L += [f"    {c}" for c in t["commands"] if c]
+        L += ["", "Generator commands (wall time of each run; the second re-renders only the references, "
+              "keeping the noisy files):", ""]
+        walls = t.get("run_wall_seconds") or [None] * len(t["commands"])
+        status = t.get("run_status") or ["done"] * len(t["commands"])
+        for c, wall, st in zip(t["commands"], walls, status):
+            if c:
+                when = (f"# wall {wall / 60:.1f} min" if wall else "# wall time not recorded") if st != "running" else \
+                    "# interrupted before it finished; the identical command below resumed it"
+                L += [f"    {c}", f"    {when}", ""]
+        if t.get("note"):
+            L += [t["note"]]
     else:
         L.append("No training set manifest found.")
     return "\n".join(L) + "\n"
