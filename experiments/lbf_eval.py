@@ -41,10 +41,15 @@ THETA_S = (2.0, 5.0, 12.0, 30.0)  # global spatial std (pixels)
 THETA_F = (1.0, 4.0, 16.0, float("inf"))  # global feature std (noise-std units, Eq. 12); inf: off
 
 
-def frames(data: Path, instance: int = 0):
-    """(shot name, spp, path, reference path) for every noisy render ``spp{spp}_{instance}``."""
+def frames(data: Path, instance: int = 0, scenes: str | None = None):
+    """(shot name, spp, path, reference path) for every noisy render ``spp{spp}_{instance}``;
+    ``scenes`` ``"lo:hi"`` keeps that slice of the sorted shot folders."""
     pat = re.compile(rf"^spp(\d{{4}})_{instance:02d}\.exr$")
-    for ref in sorted(data.rglob("reference.exr")):
+    refs = sorted(data.rglob("reference.exr"))
+    if scenes:
+        lo, hi = (int(x) for x in scenes.split(":"))
+        refs = refs[lo:hi]
+    for ref in refs:
         for p in sorted(ref.parent.iterdir()):
             m = pat.match(p.name)
             if m:
@@ -58,6 +63,7 @@ def main() -> None:
     ap.add_argument("--weights-lbf", default=None)
     ap.add_argument("--weights-nlm", default=None)
     ap.add_argument("--no-grid", action="store_true")
+    ap.add_argument("--scenes", default=None, help="lo:hi slice of the sorted shot folders (e.g. validation scenes)")
     ap.add_argument("--spp", default="4,16,64,128,256", help="sampling rates evaluated")
     ap.add_argument("--global-spp", default="4,16,64", help="sampling rates of the global-setting grid")
     ap.add_argument("--parts", default="input,lbf,lbf-nlm,global",
@@ -87,7 +93,7 @@ def main() -> None:
     records = []
     spps_eval = {int(x) for x in args.spp.split(",")}
     spps_global = {int(x) for x in args.global_spp.split(",")}
-    for shot, spp, path, refp in frames(data):
+    for shot, spp, path, refp in frames(data, scenes=args.scenes):
         if spp not in spps_eval:
             continue
         ref = read_image(refp)[..., :3]

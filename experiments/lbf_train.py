@@ -3,7 +3,7 @@ training scenes, under a wall-clock limit, and record how in jaxdenoise/weights/
 
     python experiments/lbf_train.py --method lbf --data data/train_rooms --scenes 0:20 \
         --out runs/lbf --minutes 20 [--resume]
-    python experiments/lbf_train.py --method lbf --out runs/lbf --ship   # copy weights + README
+    python experiments/lbf_train.py --method lbf --out runs/lbf --ship [--note TEXT]   # copy weights + README
 
 The scene subset is linked into ``<out>/data`` so the run (and a resume) sees exactly those scenes;
 the remaining scenes of the folder stay unseen and can serve as held-out frames.
@@ -36,7 +36,7 @@ def link_scenes(data: Path, spec: str, dest: Path) -> list[str]:
     return [p.name for p in scenes]
 
 
-def ship(method: str, out: Path) -> Path:
+def ship(method: str, out: Path, note: str = "") -> Path:
     resolved = json.loads((out / "train_config.json").read_text())
     if (out / "summary.json").is_file():
         summary = json.loads((out / "summary.json").read_text())
@@ -79,6 +79,8 @@ Trained with the generic loop `jaxdenoise.train.train` through:
 Files: `params.npz` (MLP weights `net`, input normalization `norm`), `config.json` (the method
 config the weights were trained with, restored by `jaxdenoise.load`).
 """
+    if note:
+        text += "\n" + note.strip() + "\n"
     write_text(dest / "README.md", text)
     return dest
 
@@ -96,10 +98,11 @@ def main() -> None:
     ap.add_argument("--scenes-per-step", type=int, default=None, help="Config.train_scenes_per_step")
     ap.add_argument("--resume", action="store_true")
     ap.add_argument("--ship", action="store_true", help="copy the run's weights into jaxdenoise/weights/")
+    ap.add_argument("--note", default="", help="with --ship: a paragraph appended to the weights' README")
     args = ap.parse_args()
     out = Path(args.out)
     if args.ship:
-        print(f"shipped to {ship(args.method, out)}")
+        print(f"shipped to {ship(args.method, out, args.note)}")
         return
     import dataclasses
 

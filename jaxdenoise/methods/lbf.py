@@ -73,8 +73,8 @@ class Config:
     eps: float = 0.01  # Eq. 8
     # Training data (Sec. 4.2): sampling rates of the mini-batch and the crop size (our choice).
     train_spps: tuple[int, ...] = (4, 8, 16, 32, 64)
-    train_crop: int = 32
-    train_scenes_per_step: int = 1
+    train_crop: int = 48
+    train_scenes_per_step: int = 2
 
 
 # Defaults of the generic loop (jaxdenoise.train): RPROP as in Sec. 4.2. ``learning_rate`` is
