@@ -39,7 +39,7 @@ import numpy as np
 
 from .integrator import PathSettings, derive_seed, trace
 from .mitsuba_setup import is_vectorized, setup_mitsuba
-from .render import DEFAULT_SAMPLES_PER_PASS
+from .render import DEFAULT_SAMPLES_PER_PASS, camera_ray
 from .scenes import load_scene
 
 __all__ = ["render_gradients", "trace_shifted", "OFFSETS"]
@@ -81,13 +81,8 @@ def trace_shifted(scene, *, seed: int, offset: tuple[int, int], n: int, width: i
     pos_f += sampler.next_2d()
     # [0, 1]^2 spans the film's crop window (what `sample_ray_differential` expects).
     pos_film = pos_f * dr.rcp(mi.ScalarVector2f(float(width), float(height)))
-    aperture = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Vector2f(0.5)
-    t = mi.Float(sensor.shutter_open())
-    if sensor.shutter_open_time() > 0:
-        t += sampler.next_1d() * sensor.shutter_open_time()
-    wav = sampler.next_1d()
-    ray, weight = sensor.sample_ray_differential(time=t, sample1=wav, sample2=pos_film, sample3=aperture)
-    out = trace(scene, sampler, mi.Ray3f(ray), True, settings=settings, record=frozenset())
+    ray, weight = camera_ray(sensor, sampler, pos_film)
+    out = trace(scene, sampler, ray, True, settings=settings, record=frozenset())
     return out["color"] * weight
 
 

@@ -43,13 +43,21 @@ def _sample_wavefront(scene, sensor, sampler, npix: int, n: int, width: int):
     pos_f = mi.Vector2f(pos) + sampler.next_2d()
     scale = dr.rcp(mi.ScalarVector2f(film.crop_size()))
     offset = -mi.ScalarVector2f(film.crop_offset()) * scale
-    pos_adj = dr.fma(pos_f, scale, offset)
+    return camera_ray(sensor, sampler, dr.fma(pos_f, scale, offset))
+
+
+def camera_ray(sensor, sampler, pos_film):
+    """Ray and weight through film position ``pos_film`` ([0, 1]^2 over the crop window), drawing
+    the remaining camera sample dimensions (aperture, time, wavelength) in this fixed order, which
+    `data_gen.gradient` relies on to replay the same samples."""
+    import mitsuba as mi
+
     aperture = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Vector2f(0.5)
     t = mi.Float(sensor.shutter_open())
     if sensor.shutter_open_time() > 0:
         t += sampler.next_1d() * sensor.shutter_open_time()
     wav = sampler.next_1d()
-    ray, weight = sensor.sample_ray_differential(time=t, sample1=wav, sample2=pos_adj, sample3=aperture)
+    ray, weight = sensor.sample_ray_differential(time=t, sample1=wav, sample2=pos_film, sample3=aperture)
     return mi.Ray3f(ray), weight
 
 
