@@ -38,12 +38,16 @@ from lbf_eval import frames  # noqa: E402
 from lbf_train import link_scenes  # noqa: E402
 
 
-def variants(base: lbf.Config) -> list[tuple[str, str, lbf.Config]]:
-    out = [("size", "hidden (10,) [paper]", base),
-           ("size", "hidden (20,)", dataclasses.replace(base, hidden=(20,))),
-           ("size", "hidden (10, 10)", dataclasses.replace(base, hidden=(10, 10)))]
+def variants(base: lbf.Config, seeds: int = 1) -> list[tuple[str, str, lbf.Config, int]]:
+    """(group, label, config, seed) of every variant; seeds 1.. of the paper's network measure the
+    run-to-run spread that the other differences must exceed."""
+    out = [("size", "hidden (10,) [paper]", base, 0),
+           ("size", "hidden (20,)", dataclasses.replace(base, hidden=(20,)), 0),
+           ("size", "hidden (10, 10)", dataclasses.replace(base, hidden=(10, 10)), 0)]
     for c in CATEGORIES:
-        out.append(("features", f"without {c}", dataclasses.replace(base, drop_categories=(c,))))
+        out.append(("features", f"without {c}", dataclasses.replace(base, drop_categories=(c,)), 0))
+    for s in range(1, seeds):
+        out.append(("seed", f"hidden (10,) [paper] seed {s}", base, s))
     return out
 
 
@@ -58,6 +62,10 @@ def main() -> None:
     ap.add_argument("--runs", default="runs/lbf_ablation")
     ap.add_argument("--out", default="docs/results")
     ap.add_argument("--only", default=None, help="comma list of variant labels to run (default all)")
+    ap.add_argument("--seeds", type=int, default=1,
+                    help="train the paper's network with this many seeds (0 .. N-1) to measure the spread")
+    ap.add_argument("--resume", action="store_true",
+                    help="continue (or reuse, when finished) the variants' runs under --runs")
     args = ap.parse_args()
     t0 = time.time()
     runs = Path(args.runs)
@@ -65,13 +73,13 @@ def main() -> None:
     names = link_scenes(Path(args.train), args.scenes, runs / "data")
     dataset = lbf.make_dataset(runs / "data", base)
     trained = []
-    for group, label, cfg in variants(base):
+    for group, label, cfg, seed in variants(base, args.seeds):
         if args.only and label not in args.only.split(","):
             continue
         run = runs / label.replace(" ", "_").replace(",", "").replace("(", "").replace(")", "").replace("[", "").replace("]", "")
         s = train("lbf", runs / "data", run, steps=args.steps, config=cfg, progress=False, dataset=dataset,
-                  checkpoint_every=args.steps)
-        trained.append((group, label, cfg, run, s))
+                  checkpoint_every=args.steps, seed=seed, resume=args.resume)
+        trained.append((group, label, cfg, seed, run, s))
         print(f"trained {label}: loss {s['final_loss']:.4g} ({time.time() - t0:.0f} s)", flush=True)
     # Held-out frames are read after training (they may still be rendering when this starts).
     test_spp = {int(s) for s in args.test_spp.split(",")}
@@ -83,7 +91,7 @@ def main() -> None:
             b = b.only(lbf.needs(base))
             tests.append((shot, spp, prep_fn(b), read_image(refp)[..., :3], np.asarray(b.color)))
     results = []
-    for group, label, cfg, run, s in trained:
+    for group, label, cfg, seed, run, s in trained:
         params, _ = checkpoint.load(run / "weights")
         fn = jax.jit(lambda p, prep, cfg=cfg: lbf._remove_spikes(lbf.filter_with(lbf.filter_params(p, prep["x"], cfg), prep, cfg)))
         rel, ss = [], []
@@ -91,9 +99,12 @@ def main() -> None:
             img = np.asarray(fn(params, prep))
             rel.append(float(metrics.relmse(img, ref)))
             ss.append(float(metrics.ssim(img, ref)))
+        spps = [spp for _, spp, _, _, _ in tests]
+        by_spp = {str(k): float(np.mean([r for r, q in zip(rel, spps) if q == k])) for k in sorted(set(spps))}
         results.append({"group": group, "variant": label, "train_loss": s["final_loss"], "steps": s["steps_done"],
                         "test_relmse": float(np.mean(rel)), "test_ssim": float(np.mean(ss)),
-                        "train_seconds": s["seconds"]})
+                        "test_relmse_by_spp": by_spp, "test_relmse_per_frame": rel,
+                        "seed": seed, "steps_this_run": s["steps_this_run"], "seconds_this_run": s["seconds"]})
         print(f"{label}: train loss {s['final_loss']:.4g}, test RelMSE {np.mean(rel):.4g}, SSIM {np.mean(ss):.4f} "
               f"({time.time() - t0:.0f} s)", flush=True)
     inp = float(np.mean([float(metrics.relmse(c, r)) for _, _, _, r, c in tests]))
@@ -106,9 +117,19 @@ def main() -> None:
              f"Reduced protocol: {args.steps} RPROP steps per variant, filter window {2 * args.radius + 1}x{2 * args.radius + 1}, "
              f"training scenes {names[0]}..{names[-1]}, {len(tests)} held-out frames at spp {sorted(test_spp)} "
              f"(input RelMSE {inp:.4g}).", "",
-             "| group | variant | train loss (Eq. 8, last 10 steps) | held-out RelMSE | held-out SSIM |", "|---|---|---|---|---|"]
+             "| group | variant | train loss (Eq. 8, last 10 steps) | held-out RelMSE | "
+             + " | ".join(f"RelMSE {k} spp" for k in sorted(test_spp)) + " | held-out SSIM |",
+             "|---|---|---|---|" + "---|" * len(test_spp) + "---|"]
     for r in results:
-        lines.append(f"| {r['group']} | {r['variant']} | {r['train_loss']:.4g} | {r['test_relmse']:.4g} | {r['test_ssim']:.4f} |")
+        per = " | ".join(f"{r['test_relmse_by_spp'].get(str(k), float('nan')):.4g}" for k in sorted(test_spp))
+        lines.append(f"| {r['group']} | {r['variant']} | {r['train_loss']:.4g} | {r['test_relmse']:.4g} | {per} | "
+                     f"{r['test_ssim']:.4f} |")
+    paper = [r for r in results if r["variant"].startswith("hidden (10,) [paper]")]
+    if len(paper) > 1:
+        rels, sss = [r["test_relmse"] for r in paper], [r["test_ssim"] for r in paper]
+        lines += ["", f"Run-to-run spread of the paper's network over {len(paper)} seeds: held-out RelMSE "
+                  f"{min(rels):.4g}-{max(rels):.4g}, SSIM {min(sss):.4f}-{max(sss):.4f}. A variant's difference "
+                  "from the paper's network means something only where it leaves this range."]
     write_text(Path(args.out) / "lbf_ablation.md", "\n".join(lines) + "\n")
     print(f"lbf_ablation: {len(results)} variants in {time.time() - t0:.0f} s")
 
