@@ -11,8 +11,10 @@ once). XLA's CPU backend vectorizes along the minor axis, and a minor axis of 3 
 2x slower than a minor axis of W pixels.
 
 Loop structure: one ``lax.fori_loop`` step handles ``unroll`` (default 8) consecutive column
-offsets of one window row, unrolled in Python so XLA fuses them into one pass over the image (one
-loop step per offset measured 2.3x slower on CPU). Each step is wrapped in ``jax.checkpoint`` and
+offsets of one window row, unrolled in Python (one loop step per offset measured 2.3x slower on
+CPU). XLA's CPU backend does not make that one pass over the image: a profile shows one fusion per
+offset that writes the offset's weight plane (the weight feeds both sums, and XLA does not
+duplicate the ``exp``), then one fusion per sum that adds the ``unroll`` weighted planes. Each step is wrapped in ``jax.checkpoint`` and
 its contribution is added to the carry outside the checkpoint, so reverse-mode AD stores only the
 step index and recomputes the step in the backward pass. The backward pass of one step holds a few
 planes per unrolled offset, so backward temporaries are O(H W C unroll), independent of the radius
