@@ -98,7 +98,8 @@ def _forward_halves(x):
     n1, n2 = x.shape[-2:]
     c1, s1, _, _ = _twiddles(n1, n2, x.dtype)
     pr, pi = _spectrum(x)
-    return _lo_hi(pr, pi, _reflect_rows(pr, wrap=True), -_reflect_rows(pi, wrap=True), c1, s1)  # Q = conj P(-k1)
+    qr, qi = _reflect_rows(pr, wrap=True), -_reflect_rows(pi, wrap=True)   # Q = conj P(-k1)
+    return _lo_hi(pr, pi, qr, qi, c1, s1)
 
 
 def _inverse_halves(lo, hi, n2: int):

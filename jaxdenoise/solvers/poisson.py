@@ -187,11 +187,11 @@ def _residual(image, base, dx, dy, alpha):
 def _dct_solve(rhs, alpha):
     """``(alpha 1 + D^T D)^{-1} rhs`` for an HWC ``rhs`` orthogonal to constants.
 
-    The multiplier ``1 / (lambda + alpha)`` is evaluated inside the DCT's fused twiddle pass. The DC coefficient is set to exactly zero:
-    analytically ``1^T rhs = 0`` for the right-hand sides used here (they are ``D^T(...)``, and
-    ``D 1 = 0``), but float32 rounding leaves ~1e-7 * ||rhs|| in it, which division by the DC
-    eigenvalue ``alpha`` (down to 1e-6) would blow up into a large constant offset. This is where
-    small alpha is unstable, so the guard sits here.
+    The multiplier ``1 / (lambda + alpha)`` is evaluated inside the DCT's fused twiddle pass. The DC
+    coefficient is set to exactly zero: analytically ``1^T rhs = 0`` for the right-hand sides used
+    here (they are ``D^T(...)``, and ``D 1 = 0``), but float32 rounding leaves ~1e-7 * ||rhs|| in
+    it, which division by the DC eigenvalue ``alpha`` (down to 1e-6) would blow up into a large
+    constant offset. This is where small alpha is unstable, so the guard sits here.
     """
     h, w = rhs.shape[:2]
 
