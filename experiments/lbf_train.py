@@ -96,6 +96,10 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--crop", type=int, default=None, help="training crop size (Config.train_crop)")
     ap.add_argument("--scenes-per-step", type=int, default=None, help="Config.train_scenes_per_step")
+    ap.add_argument("--optimizer", default=None, choices=["rprop", "adam"],
+                    help="default: the method's (RPROP, Sec. 4.2)")
+    ap.add_argument("--lr", type=float, default=None,
+                    help="Adam step size, or RPROP's initial step size (default: the method's)")
     ap.add_argument("--resume", action="store_true")
     ap.add_argument("--ship", action="store_true", help="copy the run's weights into jaxdenoise/weights/")
     ap.add_argument("--note", default="", help="with --ship: a paragraph appended to the weights' README")
@@ -120,8 +124,9 @@ def main() -> None:
     write_json(out / "scenes.json", {"data": args.data, "scenes": names,
                                      "command": "python " + " ".join(sys.argv)})
     t0 = time.time()
+    overrides = {k: v for k, v in (("optimizer", args.optimizer), ("learning_rate", args.lr)) if v is not None}
     summary = train(args.method, out / "data", out, resume=args.resume, steps=args.steps, seed=args.seed,
-                    progress=True, time_limit=args.minutes * 60, config=config)
+                    progress=True, time_limit=args.minutes * 60, config=config, **overrides)
     print(summary["line"], f"({time.time() - t0:.0f} s)")
 
 
