@@ -36,6 +36,7 @@ from jaxdenoise import api, metrics  # noqa: E402
 from jaxdenoise.fsutil import write_json, write_text  # noqa: E402
 from jaxdenoise.io import read_buffers, read_image  # noqa: E402
 from jaxdenoise.methods import lbf  # noqa: E402
+from lbf_train import select_scenes  # noqa: E402
 
 THETA_S = (2.0, 5.0, 12.0, 30.0)  # global spatial std (pixels)
 THETA_F = (1.0, 4.0, 16.0, float("inf"))  # global feature std (noise-std units, Eq. 12); inf: off
@@ -43,12 +44,9 @@ THETA_F = (1.0, 4.0, 16.0, float("inf"))  # global feature std (noise-std units,
 
 def frames(data: Path, instance: int = 0, scenes: str | None = None):
     """(shot name, spp, path, reference path) for every noisy render ``spp{spp}_{instance}``;
-    ``scenes`` ``"lo:hi"`` keeps that slice of the sorted shot folders."""
+    ``scenes`` ``"lo:hi"`` keeps that slice of the sorted scene folders (as `lbf_train` selects them)."""
     pat = re.compile(rf"^spp(\d{{4}})_{instance:02d}\.exr$")
-    refs = sorted(data.rglob("reference.exr"))
-    if scenes:
-        lo, hi = (int(x) for x in scenes.split(":"))
-        refs = refs[lo:hi]
+    refs = [p / "reference.exr" for p in select_scenes(data, scenes)] if scenes else sorted(data.rglob("reference.exr"))
     for ref in refs:
         for p in sorted(ref.parent.iterdir()):
             m = pat.match(p.name)

@@ -25,9 +25,17 @@ from jaxdenoise.fsutil import write_text  # noqa: E402
 from jaxdenoise.methods import WEIGHTS_DIR  # noqa: E402
 
 
+def select_scenes(data: Path, spec: str) -> list[Path]:
+    """The ``lo:hi`` slice of the sorted scene folders (those holding a ``reference.exr``) of ``data``."""
+    try:
+        lo, hi = (int(x) for x in spec.split(":"))
+    except ValueError:
+        raise SystemExit(f"--scenes {spec!r}: expected lo:hi, two integers (e.g. 0:32)") from None
+    return sorted(p for p in data.iterdir() if p.is_dir() and (p / "reference.exr").is_file())[lo:hi]
+
+
 def link_scenes(data: Path, spec: str, dest: Path) -> list[str]:
-    lo, hi = (int(x) for x in spec.split(":"))
-    scenes = sorted(p for p in data.iterdir() if p.is_dir() and (p / "reference.exr").is_file())[lo:hi]
+    scenes = select_scenes(data, spec)
     dest.mkdir(parents=True, exist_ok=True)
     for p in scenes:
         link = dest / p.name
