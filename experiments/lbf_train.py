@@ -5,6 +5,10 @@ training scenes, under a wall-clock limit, and record how in jaxdenoise/weights/
         --out runs/lbf --minutes 20 [--resume]
     python experiments/lbf_train.py --method lbf --out runs/lbf --ship [--note TEXT]   # copy weights + README
 
+With ``--val-scenes lo:hi`` (scenes of the same folder, disjoint from ``--scenes``) the run scores
+itself on those scenes every ``--validate-every`` steps (`jaxdenoise.train`, "Validation") and
+``--ship`` copies the best-scoring params instead of the last ones.
+
 The scene subset is linked into ``<out>/data`` so the run (and a resume) sees exactly those scenes;
 the remaining scenes of the folder stay unseen and can serve as held-out frames.
 """
@@ -45,26 +49,42 @@ def link_scenes(data: Path, spec: str, dest: Path) -> list[str]:
 
 
 def ship(method: str, out: Path, note: str = "") -> Path:
+    """Copy the run's weights (its ``best/`` when it was validated) into jaxdenoise/weights/<method>
+    with a README saying how they were trained; the old folder is replaced only once the new one
+    is complete."""
     resolved = json.loads((out / "train_config.json").read_text())
+    ckpt_meta = json.loads((out / "checkpoint" / "config.json").read_text())
+    hist = ckpt_meta.get("history", [])
     if (out / "summary.json").is_file():
         summary = json.loads((out / "summary.json").read_text())
         params, meta = checkpoint.load(out / "weights")
     else:  # the run was stopped: ship its last checkpoint (written every checkpoint_every steps)
-        state, cmeta = checkpoint.load(out / "checkpoint")
+        state, _ = checkpoint.load(out / "checkpoint")
         params = state["params"]
-        hist = cmeta["history"]
         elapsed = (out / "checkpoint" / "config.json").stat().st_mtime - (out / "train_config.json").stat().st_mtime
-        summary = {"steps_done": cmeta["step"], "final_loss": sum(hist[-10:]) / max(1, len(hist[-10:])),
+        summary = {"steps_done": ckpt_meta["step"], "final_loss": sum(hist[-10:]) / max(1, len(hist[-10:])),
                    "seconds": elapsed}
-        meta = {"config": cmeta["config"], "method": method, "steps": cmeta["step"],
+        meta = {"config": ckpt_meta["config"], "method": method, "steps": ckpt_meta["step"],
                 "data": resolved["data"], "seed": resolved["seed"], "final_loss": summary["final_loss"],
                 "note": "run stopped by hand at the session's time limit; last checkpoint shipped"}
+    selection = ""
+    if (out / "best" / checkpoint.PARAMS_FILE).is_file():
+        params, meta = checkpoint.load(out / "best")
+        val = meta["validation"]
+        scores = ckpt_meta.get("validation", [])
+        every = resolved["train"].get("validate_every")
+        per = ", ".join(f"{v:.4g} at {k} spp" for k, v in val["per_spp"].items())
+        selection = f"""- selection: these are the params of step {val['step']} of the {summary['steps_done']}, the
+  lowest mean validation RelMSE ({val['relmse']:.5g}: {per}) of the {len(scores)} validations
+  (every {every} steps) on `{resolved['val_data']}` (scenes never used in training); the last
+  validation, at step {scores[-1]['step'] if scores else '?'}, scored {scores[-1]['relmse'] if scores else float('nan'):.5g}.
+"""
     dest = WEIGHTS_DIR / method
-    if dest.exists():
-        shutil.rmtree(dest)
-    checkpoint.save(dest, params, None, extra={k: v for k, v in meta.items()})
+    tmp = dest.with_name(dest.name + ".new")
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    checkpoint.save(tmp, params, None, extra={k: v for k, v in meta.items()})
     scenes = json.loads((out / "scenes.json").read_text())
-    hist = json.loads((out / "checkpoint" / "config.json").read_text()).get("history", [])
     text = f"""# Weights `{method}` (Kalantari, Bako, Sen 2015)
 
 Trained with the generic loop `jaxdenoise.train.train` through:
@@ -83,13 +103,21 @@ Trained with the generic loop `jaxdenoise.train.train` through:
 - time: {summary['seconds'] / 60:.1f} min wall (2 CPU cores shared with other jobs).
 - final loss (Eq. 8, mean of the last 10 mini-batches): {summary['final_loss']:.5g};
   first 10 mini-batches: {sum(hist[:10]) / max(1, len(hist[:10])):.5g}.
-
+{selection}
 Files: `params.npz` (MLP weights `net`, input normalization `norm`), `config.json` (the method
 config the weights were trained with, restored by `jaxdenoise.load`).
 """
     if note:
         text += "\n" + note.strip() + "\n"
-    write_text(dest / "README.md", text)
+    write_text(tmp / "README.md", text)
+    old = dest.with_name(dest.name + ".old")
+    if old.exists():
+        shutil.rmtree(old)
+    if dest.exists():
+        dest.rename(old)
+    tmp.rename(dest)
+    if old.exists():
+        shutil.rmtree(old)
     return dest
 
 
@@ -108,6 +136,11 @@ def main() -> None:
                     help="default: the method's (RPROP, Sec. 4.2)")
     ap.add_argument("--lr", type=float, default=None,
                     help="Adam step size, or RPROP's initial step size (default: the method's)")
+    ap.add_argument("--val-scenes", default=None,
+                    help="lo:hi slice of --data scored during training (must not overlap --scenes); "
+                         "the best params are kept in <out>/best and shipped")
+    ap.add_argument("--val-spps", default="4,16,64", help="sampling rates of the validation scenes")
+    ap.add_argument("--validate-every", type=int, default=100)
     ap.add_argument("--resume", action="store_true")
     ap.add_argument("--ship", action="store_true", help="copy the run's weights into jaxdenoise/weights/")
     ap.add_argument("--note", default="", help="with --ship: a paragraph appended to the weights' README")
@@ -129,12 +162,20 @@ def main() -> None:
         config = dataclasses.replace(config, train_scenes_per_step=args.scenes_per_step)
 
     names = link_scenes(Path(args.data), args.scenes, out / "data")
-    write_json(out / "scenes.json", {"data": args.data, "scenes": names,
+    val_names = link_scenes(Path(args.data), args.val_scenes, out / "val") if args.val_scenes else []
+    if set(names) & set(val_names):
+        raise SystemExit(f"--val-scenes {args.val_scenes} overlaps --scenes {args.scenes}: "
+                         f"{sorted(set(names) & set(val_names))[:3]}")
+    write_json(out / "scenes.json", {"data": args.data, "scenes": names, "val_scenes": val_names,
                                      "command": "python " + " ".join(sys.argv)})
     t0 = time.time()
     overrides = {k: v for k, v in (("optimizer", args.optimizer), ("learning_rate", args.lr)) if v is not None}
+    val = {}
+    if val_names:
+        val = {"val_data": out / "val", "val_spps": [int(x) for x in args.val_spps.split(",")],
+               "validate_every": args.validate_every}
     summary = train(args.method, out / "data", out, resume=args.resume, steps=args.steps, seed=args.seed,
-                    progress=True, time_limit=args.minutes * 60, config=config, **overrides)
+                    progress=True, time_limit=args.minutes * 60, config=config, **overrides, **val)
     print(summary["line"], f"({time.time() - t0:.0f} s)")
 
 

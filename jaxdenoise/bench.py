@@ -67,7 +67,8 @@ def discover(data_dir: str | os.PathLike) -> list[Shot]:
     if not root.is_dir():
         raise FileNotFoundError(f"{root}: not a folder")
     shots = []
-    for ref in sorted(root.rglob(REFERENCE)):
+    refs = sorted(Path(d) / REFERENCE for d, _, files in os.walk(root, followlinks=True) if REFERENCE in files)
+    for ref in refs:  # os.walk with followlinks: shot folders linked into ``root`` count too
         manifest = ref.parent / SHOT_RECORD
         timings = {}
         if manifest.is_file():

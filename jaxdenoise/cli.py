@@ -88,12 +88,27 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from .train import train
+    from .train import TrainError, train
 
-    summary = train(args.method, args.data, args.out, resume=args.resume, steps=args.steps, seed=args.seed,
-                    progress=not args.quiet)
+    overrides = {"validate_every": args.validate_every} if args.validate_every is not None else {}
+    try:
+        summary = train(args.method, args.data, args.out, resume=args.resume, steps=args.steps, seed=args.seed,
+                        progress=not args.quiet, val_data=args.val_data, val_spps=args.val_spps, **overrides)
+    except TrainError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     print(summary.get("line", f"train: {args.method} done; outputs in {args.out}"))
     return 0
+
+
+def _int_list(text: str) -> list[int]:
+    try:
+        values = [int(x) for x in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected comma-separated integers, e.g. 4,16,64") from None
+    if any(v <= 0 for v in values):
+        raise argparse.ArgumentTypeError(f"{text!r}: sampling rates must be positive")
+    return values
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -128,6 +143,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--resume", action="store_true")
     s.add_argument("--steps", type=int)
     s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--val-data", help="folder of shots scored during training; the best params go to OUT/best")
+    s.add_argument("--val-spps", type=_int_list,
+                   help="comma-separated sampling rates of --val-data to score (default: all)")
+    s.add_argument("--validate-every", type=int, help="steps between validations (default: only at the end)")
     s.add_argument("--quiet", action="store_true")
     s.set_defaults(func=_cmd_train)
 

@@ -23,7 +23,17 @@ Outputs under ``out_dir``:
 - ``weights/``: the trained params with the method config, loadable like shipped weights
   (`jaxdenoise.checkpoint.load`);
 - ``train_config.json``: the resolved configuration (method config, training config, data, seed);
-- ``summary.json``: the returned summary (its ``line`` is the one-line summary the CLI prints).
+- ``summary.json``: the returned summary (its ``line`` is the one-line summary the CLI prints);
+- ``best/`` (only with validation data): the params with the lowest validation error so far, same
+  format as ``weights/``, with the step and the scores in its ``config.json``.
+
+Validation (``val_data`` and ``validate_every > 0``): every ``validate_every`` steps and at the end,
+the current params denoise one render per shot and sampling rate of ``val_data`` (the first noise
+instance; ``val_spps`` limits the rates) through the method's full inference path (`api.inference_fn`,
+so post-processing such as LBF's spike removal is included), and the score is the mean RelMSE
+(`metrics.relmse`) over those frames. Mini-batch losses are too noisy to pick weights by, and a run
+can get worse on some scenes while its training loss falls; ``best/`` is what to ship. The scores
+are kept in the checkpoint's history, so a resumed run continues the same record.
 
 Non-finite losses or gradients skip the update (counted in the summary); ``max_bad_steps`` of them
 in a row stop the run with an error, since the parameters would not move any more.
@@ -45,10 +55,12 @@ from . import checkpoint
 from .fsutil import write_json
 from .methods import MethodError, get
 
-__all__ = ["TrainConfig", "TrainError", "train", "restore_like", "make_optimizer", "summary_line"]
+__all__ = ["TrainConfig", "TrainError", "train", "restore_like", "make_optimizer", "summary_line",
+           "load_validation", "validate"]
 
 CHECKPOINT_DIR = "checkpoint"
 WEIGHTS_DIR = "weights"
+BEST_DIR = "best"
 
 
 class TrainError(RuntimeError):
@@ -65,6 +77,7 @@ class TrainConfig:
     checkpoint_every: int = 25
     max_bad_steps: int = 20
     time_limit: float | None = None  # seconds; stop (with a checkpoint) when exceeded
+    validate_every: int = 0  # steps between validations (0: only at the end, when val_data is given)
 
 
 def make_optimizer(tc: TrainConfig) -> tuple[Callable, Callable]:
@@ -136,21 +149,76 @@ def _step_fn(method_name: str, config: Any, optimizer: str, learning_rate: float
     return step_fn
 
 
+def load_validation(method: Any, data_dir: str | Path, spps: Any = None) -> list[dict]:
+    """The validation frames of ``data_dir``: for every shot (`bench.discover`) and sampling rate
+    (all rates, or those in ``spps``), its first render in name order, read with the buffers
+    ``method`` uses. Returns ``[{"file", "spp", "buffers", "reference"}]``."""
+    from .api import prepare
+    from .bench import discover
+    from .io import read_buffers, read_image
+
+    wanted = None if spps is None else {int(s) for s in spps}
+    frames = []
+    for shot in discover(data_dir):
+        seen: set = set()
+        ref = None
+        for r in shot.renders:
+            if r.spp in seen or (wanted is not None and r.spp not in wanted):
+                continue
+            seen.add(r.spp)
+            if ref is None:
+                ref = np.asarray(read_image(shot.reference), np.float32)[..., :3]
+            buffers, _ = read_buffers(r.path)
+            if buffers.shape != ref.shape[:2]:
+                raise TrainError(f"{r.path}: size {buffers.shape} differs from {shot.reference} {ref.shape[:2]}")
+            try:
+                buffers = prepare(method, buffers)
+            except ValueError as e:
+                raise TrainError(f"{r.path}: cannot validate {method.name} on it: {e}") from None
+            frames.append({"file": str(r.path), "spp": r.spp, "buffers": buffers, "reference": ref})
+    if not frames:
+        raise TrainError(f"{data_dir}: no validation render" + (f" at spp {sorted(wanted)}" if wanted else ""))
+    return frames
+
+
+def validate(method: Any, params: Any, frames: list[dict]) -> dict:
+    """Mean RelMSE of ``method`` with ``params`` over ``frames`` (`load_validation`), overall and
+    per sampling rate. A non-finite output scores ``inf`` (never the best)."""
+    from . import metrics
+    from .api import inference_fn
+
+    fn = inference_fn(method)
+    errs: dict[Any, list[float]] = {}
+    for f in frames:
+        e = float(metrics.relmse(fn(params, f["buffers"]), f["reference"]))
+        errs.setdefault(f["spp"], []).append(e if math.isfinite(e) else math.inf)
+    every = [e for es in errs.values() for e in es]
+    return {"relmse": float(np.mean(every)),
+            "per_spp": {str(k): float(np.mean(v))
+                    for k, v in sorted(errs.items(), key=lambda kv: (kv[0] is None, kv[0] or 0))}}
+
+
 def summary_line(summary: dict) -> str:
-    return (f"trained {summary['method']}: {summary['steps_done']} steps "
+    line = (f"trained {summary['method']}: {summary['steps_done']} steps "
             f"(+{summary['steps_this_run']} this run) in {summary['seconds']:.1f} s, "
             f"final loss {summary['final_loss']:.5g}, weights in {summary['weights']}")
+    if summary.get("best") is not None:
+        line += (f"; best validation RelMSE {summary['best']['relmse']:.5g} at step {summary['best']['step']}"
+                 f" in {summary['best_weights']}")
+    return line
 
 
 def train(method_name: str, data_dir: str | Path, out_dir: str | Path, *, resume: bool = False,
           steps: int | None = None, seed: int = 0, progress: bool = True, config: Any = None,
-          train_config: TrainConfig | None = None, dataset: Any = None, **train_overrides: Any) -> dict:
+          train_config: TrainConfig | None = None, dataset: Any = None, val_data: str | Path | None = None,
+          val_spps: Any = None, **train_overrides: Any) -> dict:
     """Train a registered method on ``data_dir``; writes checkpoints and weights under ``out_dir``.
 
     ``steps`` is the total number of steps of the run (a resumed run continues up to it);
     ``config`` replaces the method's default config; ``train_config`` / ``train_overrides``
     (fields of `TrainConfig`) adjust the optimization; ``dataset`` reuses the result of an earlier
-    ``make_dataset`` (experiments that train several variants on the same data). Returns the summary.
+    ``make_dataset`` (experiments that train several variants on the same data); ``val_data`` /
+    ``val_spps`` turn on validation (module docstring). Returns the summary.
     """
     method = get(method_name, config)
     module = method.module
@@ -164,14 +232,19 @@ def train(method_name: str, data_dir: str | Path, out_dir: str | Path, *, resume
     tc = TrainConfig(**base)
     if tc.steps < 0:
         raise TrainError(f"steps must be >= 0, got {tc.steps}")
+    if tc.validate_every < 0:
+        raise TrainError(f"validate_every must be >= 0, got {tc.validate_every}")
     data_dir, out_dir = Path(data_dir), Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     cfg_dict = checkpoint.config_to_dict(method.config)
     resolved = {"method": method_name, "config": cfg_dict, "train": dataclasses.asdict(tc),
-                "data": str(data_dir), "seed": int(seed)}
+                "data": str(data_dir), "seed": int(seed),
+                "val_data": None if val_data is None else str(val_data),
+                "val_spps": None if val_spps is None else [int(x) for x in val_spps]}
     write_json(out_dir / "train_config.json", resolved)
 
     t0 = time.perf_counter()
+    val_frames = load_validation(method, val_data, val_spps) if val_data is not None else None
     if dataset is None:
         dataset = module.make_dataset(data_dir, method.config)
     key = jax.random.PRNGKey(seed)
@@ -181,7 +254,7 @@ def train(method_name: str, data_dir: str | Path, out_dir: str | Path, *, resume
         params = module.init(key, method.config)
     opt_init, opt_update = make_optimizer(tc)
     opt_state = opt_init(params)
-    start, history, bad_total = 0, [], 0
+    start, history, bad_total, val_history = 0, [], 0, []
     ckpt_dir = out_dir / CHECKPOINT_DIR
     if resume and (ckpt_dir / checkpoint.PARAMS_FILE).is_file():
         loaded, meta = checkpoint.load(ckpt_dir)
@@ -192,12 +265,35 @@ def train(method_name: str, data_dir: str | Path, out_dir: str | Path, *, resume
         state = restore_like({"params": params, "opt_state": opt_state}, loaded, where=str(ckpt_dir))
         params, opt_state = state["params"], state["opt_state"]
         start, history, bad_total = int(meta["step"]), list(meta.get("history", [])), int(meta.get("bad_steps", 0))
+        val_history = [v for v in meta.get("validation", []) if v["step"] <= start]
+    best_dir = out_dir / BEST_DIR
+    best = None
+    if val_frames is not None and resume and (best_dir / checkpoint.CONFIG_FILE).is_file():
+        best = checkpoint.load(best_dir)[1].get("validation")
     step_fn = _step_fn(method_name, method.config, tc.optimizer, tc.learning_rate)
 
     def save(step: int) -> None:
         checkpoint.save(ckpt_dir, {"params": params, "opt_state": opt_state}, method.config,
                         extra={"method": method_name, "step": step, "history": history,
-                               "bad_steps": bad_total, "train": dataclasses.asdict(tc), "seed": int(seed)})
+                               "bad_steps": bad_total, "train": dataclasses.asdict(tc), "seed": int(seed),
+                               "validation": val_history})
+
+    def run_validation(step: int) -> None:
+        nonlocal best
+        if val_frames is None or (val_history and val_history[-1]["step"] == step):
+            return
+        t = time.perf_counter()
+        score = {"step": step, **validate(method, params, val_frames)}
+        score["seconds"] = time.perf_counter() - t
+        val_history.append(score)
+        if best is None or score["relmse"] < best["relmse"]:
+            best = score
+            checkpoint.save(best_dir, params, method.config,
+                            extra={"method": method_name, "steps": step, "data": str(data_dir), "seed": int(seed),
+                                   "val_data": str(val_data), "validation": score})
+        if bar is not None:
+            bar.write(f"step {step}: validation RelMSE {score['relmse']:.5g} (best {best['relmse']:.5g} "
+                      f"at step {best['step']}; {score['seconds']:.0f} s)")
 
     bar = None
     if progress:
@@ -223,6 +319,8 @@ def train(method_name: str, data_dir: str | Path, out_dir: str | Path, *, resume
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(loss=f"{value:.4g}")
+            if tc.validate_every and (step + 1) % tc.validate_every == 0:
+                run_validation(step + 1)
             if (step + 1) % tc.checkpoint_every == 0:
                 save(step + 1)
             if tc.time_limit is not None and time.perf_counter() - t_loop > tc.time_limit:
@@ -230,6 +328,7 @@ def train(method_name: str, data_dir: str | Path, out_dir: str | Path, *, resume
                 break
         else:
             step = max(start, tc.steps)
+        run_validation(step)
     finally:
         if bar is not None:
             bar.close()
@@ -240,6 +339,8 @@ def train(method_name: str, data_dir: str | Path, out_dir: str | Path, *, resume
     summary = {"method": method_name, "steps_done": step, "steps_this_run": step - start,
                "final_loss": _final(history), "seconds": time.perf_counter() - t0,
                "bad_steps": bad_total, "out": str(out_dir), "weights": str(out_dir / WEIGHTS_DIR)}
+    if val_frames is not None:
+        summary.update(best=best, best_weights=str(best_dir), validation=val_history)
     summary["line"] = summary_line(summary)
     write_json(out_dir / "summary.json", summary)
     return summary

@@ -28,6 +28,14 @@ def test_discover_layout(data):
     assert shots[0].renders[1].render_seconds == pytest.approx(0.16, rel=1e-6)
 
 
+def test_discover_follows_linked_shot_folders(data, tmp_path):
+    # a selection of shots linked into a folder of its own (as experiments/lbf_train.py does)
+    sel = tmp_path / "selection"
+    sel.mkdir()
+    (sel / "scene_0001").symlink_to(data / "scene_0001")
+    assert [s.name for s in bench.discover(sel)] == ["scene_0001"]
+
+
 def test_bench_writes_three_reports(data, tmp_path):
     out = tmp_path / "report"
     report = bench.run(data, ["input", "gaussian"], out, runs=5, progress=False)

@@ -86,3 +86,51 @@ def test_restore_like_checks_shapes():
     assert isinstance(out["b"], tuple) and out["b"][1] == {}  # structure of the template, exact
     with pytest.raises(TrainError, match="shape"):
         restore_like(tmpl, {"a": np.ones(4), "b": [np.ones(2)]})
+
+
+def test_validation_keeps_the_best_params_and_resumes_its_record(dataset, tmp_path):
+    from jaxdenoise.methods import get
+    from jaxdenoise.train import load_validation, validate
+
+    kw = dict(config=CFG, progress=False, checkpoint_every=2, validate_every=2, val_data=dataset, val_spps=[4])
+    full = train("lbf", dataset, tmp_path / "full", steps=4, **kw)
+    steps = [v["step"] for v in full["validation"]]
+    assert steps == [2, 4]  # every 2 steps; the end (step 4) is not scored twice
+    best = min(full["validation"], key=lambda v: v["relmse"])
+    assert full["best"]["step"] == best["step"] and full["best"]["relmse"] == best["relmse"]  # exact
+    assert set(best["per_spp"]) == {"4"}  # val_spps honoured: one rate
+    params, meta = checkpoint.load(tmp_path / "full" / "best")
+    assert meta["steps"] == best["step"] and meta["validation"]["relmse"] == best["relmse"]
+    # the stored params reproduce the stored score
+    method = get("lbf", CFG)
+    frames = load_validation(method, dataset, [4])
+    assert len(frames) == 2 and all(f["file"].endswith("spp0004_00.exr") for f in frames)  # first instance
+    rescored = validate(method, restore_like(params, params), frames)
+    np.testing.assert_allclose(rescored["relmse"], best["relmse"], rtol=1e-6)
+    assert "best validation RelMSE" in full["line"]
+
+    train("lbf", dataset, tmp_path / "part", steps=2, **kw)
+    resumed = train("lbf", dataset, tmp_path / "part", steps=4, resume=True, **kw)
+    assert [v["step"] for v in resumed["validation"]] == steps
+    for a, b in zip(resumed["validation"], full["validation"]):
+        np.testing.assert_allclose(a["relmse"], b["relmse"], rtol=1e-5)  # same params, same scores
+
+
+def test_validation_data_errors_name_the_folder_and_rate(dataset, tmp_path):
+    from jaxdenoise.methods import get
+    from jaxdenoise.train import load_validation
+
+    with pytest.raises(TrainError, match=r"no validation render at spp \[16\]"):
+        load_validation(get("lbf", CFG), dataset, [16])
+    with pytest.raises(FileNotFoundError, match="no shot found"):
+        train("lbf", dataset, tmp_path / "o", steps=1, config=CFG, progress=False, val_data=tmp_path)
+    with pytest.raises(TrainError, match="validate_every"):
+        train("lbf", dataset, tmp_path / "o2", steps=1, config=CFG, progress=False, validate_every=-1)
+
+
+def test_cli_train_rejects_bad_validation_rates(capsys):
+    from jaxdenoise.cli import main
+
+    with pytest.raises(SystemExit):
+        main(["train", "lbf", "--data", "d", "--out", "o", "--val-spps", "4,x"])
+    assert "expected comma-separated integers" in capsys.readouterr().err
