@@ -100,6 +100,7 @@ Trained with the generic loop `jaxdenoise.train.train` through:
   {summary['steps_done']} steps of {resolved['config']['train_scenes_per_step']} scenes x
   {len(resolved['config']['train_spps'])} spp crops of {resolved['config']['train_crop']}x{resolved['config']['train_crop']},
   seed {resolved['seed']}, filter window {2 * resolved['config']['radius'] + 1}x{2 * resolved['config']['radius'] + 1}.
+- started from: {('`' + resolved['init_from'] + '` (fine-tuned)') if resolved.get('init_from') else 'random weights (Sec. 3.1)'}.
 - time: {summary['seconds'] / 60:.1f} min wall (2 CPU cores shared with other jobs).
 - final loss (Eq. 8, mean of the last 10 mini-batches): {summary['final_loss']:.5g};
   first 10 mini-batches: {sum(hist[:10]) / max(1, len(hist[:10])):.5g}.
@@ -141,6 +142,7 @@ def main() -> None:
                          "the best params are kept in <out>/best and shipped")
     ap.add_argument("--val-spps", default="4,16,64", help="sampling rates of the validation scenes")
     ap.add_argument("--validate-every", type=int, default=100)
+    ap.add_argument("--init", default=None, help="weights folder to fine-tune (e.g. jaxdenoise/weights/lbf)")
     ap.add_argument("--resume", action="store_true")
     ap.add_argument("--ship", action="store_true", help="copy the run's weights into jaxdenoise/weights/")
     ap.add_argument("--note", default="", help="with --ship: a paragraph appended to the weights' README")
@@ -175,7 +177,8 @@ def main() -> None:
         val = {"val_data": out / "val", "val_spps": [int(x) for x in args.val_spps.split(",")],
                "validate_every": args.validate_every}
     summary = train(args.method, out / "data", out, resume=args.resume, steps=args.steps, seed=args.seed,
-                    progress=True, time_limit=args.minutes * 60, config=config, **overrides, **val)
+                    progress=True, time_limit=args.minutes * 60, config=config, init_from=args.init,
+                    **overrides, **val)
     print(summary["line"], f"({time.time() - t0:.0f} s)")
 
 

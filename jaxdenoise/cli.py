@@ -93,7 +93,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
     overrides = {"validate_every": args.validate_every} if args.validate_every is not None else {}
     try:
         summary = train(args.method, args.data, args.out, resume=args.resume, steps=args.steps, seed=args.seed,
-                        progress=not args.quiet, val_data=args.val_data, val_spps=args.val_spps, **overrides)
+                        progress=not args.quiet, val_data=args.val_data, val_spps=args.val_spps,
+                        init_from=args.init, **overrides)
     except TrainError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -143,6 +144,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--resume", action="store_true")
     s.add_argument("--steps", type=int)
     s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--init", help="weights folder to start from (fine-tuning; default: random init)")
     s.add_argument("--val-data", help="folder of shots scored during training; the best params go to OUT/best")
     s.add_argument("--val-spps", type=_int_list,
                    help="comma-separated sampling rates of --val-data to score (default: all)")

@@ -33,7 +33,9 @@ instance; ``val_spps`` limits the rates) through the method's full inference pat
 so post-processing such as LBF's spike removal is included), and the score is the mean RelMSE
 (`metrics.relmse`) over those frames. Mini-batch losses are too noisy to pick weights by, and a run
 can get worse on some scenes while its training loss falls; ``best/`` is what to ship. The scores
-are kept in the checkpoint's history, so a resumed run continues the same record.
+are kept in the checkpoint's history, so a resumed run continues the same record. A run started
+from given weights (``init_from``) scores them first (step 0), so ``best/`` is never worse on the
+validation frames than what the run started from.
 
 Non-finite losses or gradients skip the update (counted in the summary); ``max_bad_steps`` of them
 in a row stop the run with an error, since the parameters would not move any more.
@@ -211,14 +213,16 @@ def summary_line(summary: dict) -> str:
 def train(method_name: str, data_dir: str | Path, out_dir: str | Path, *, resume: bool = False,
           steps: int | None = None, seed: int = 0, progress: bool = True, config: Any = None,
           train_config: TrainConfig | None = None, dataset: Any = None, val_data: str | Path | None = None,
-          val_spps: Any = None, **train_overrides: Any) -> dict:
+          val_spps: Any = None, init_from: str | Path | None = None, **train_overrides: Any) -> dict:
     """Train a registered method on ``data_dir``; writes checkpoints and weights under ``out_dir``.
 
     ``steps`` is the total number of steps of the run (a resumed run continues up to it);
     ``config`` replaces the method's default config; ``train_config`` / ``train_overrides``
     (fields of `TrainConfig`) adjust the optimization; ``dataset`` reuses the result of an earlier
     ``make_dataset`` (experiments that train several variants on the same data); ``val_data`` /
-    ``val_spps`` turn on validation (module docstring). Returns the summary.
+    ``val_spps`` turn on validation (module docstring); ``init_from`` (a weights folder of the same
+    method and config, e.g. shipped weights) replaces the initial params, frozen entries included, so
+    a run can fine-tune them (ignored when resuming). Returns the summary.
     """
     method = get(method_name, config)
     module = method.module
@@ -240,7 +244,8 @@ def train(method_name: str, data_dir: str | Path, out_dir: str | Path, *, resume
     resolved = {"method": method_name, "config": cfg_dict, "train": dataclasses.asdict(tc),
                 "data": str(data_dir), "seed": int(seed),
                 "val_data": None if val_data is None else str(val_data),
-                "val_spps": None if val_spps is None else [int(x) for x in val_spps]}
+                "val_spps": None if val_spps is None else [int(x) for x in val_spps],
+                "init_from": None if init_from is None else str(init_from)}
     write_json(out_dir / "train_config.json", resolved)
 
     t0 = time.perf_counter()
@@ -252,6 +257,14 @@ def train(method_name: str, data_dir: str | Path, out_dir: str | Path, *, resume
         params = module.init_from_data(key, method.config, dataset)
     else:
         params = module.init(key, method.config)
+    if init_from is not None:
+        loaded, meta = checkpoint.load(init_from)
+        # training-data fields (``train_*``: crops, batch) may differ; the model's may not
+        model = lambda c: {k: v for k, v in c.items() if not k.startswith("train_")}
+        if meta.get("config") and model(meta["config"]) != model(cfg_dict):
+            raise TrainError(f"{init_from}: weights were trained with config {meta['config']}; this run is "
+                             f"{method_name!r} with {cfg_dict}")
+        params = restore_like(params, loaded, where=str(init_from))
     opt_init, opt_update = make_optimizer(tc)
     opt_state = opt_init(params)
     start, history, bad_total, val_history = 0, [], 0, []
@@ -303,6 +316,8 @@ def train(method_name: str, data_dir: str | Path, out_dir: str | Path, *, resume
     step = start
     t_loop = time.perf_counter()
     try:
+        if init_from is not None and start == 0:
+            run_validation(0)  # the starting weights' score: fine-tuning keeps them unless it beats them
         for step in range(start, tc.steps):
             rng = np.random.default_rng([int(seed), step])
             b = module.batch(dataset, step, method.config, rng)

@@ -134,3 +134,24 @@ def test_cli_train_rejects_bad_validation_rates(capsys):
     with pytest.raises(SystemExit):
         main(["train", "lbf", "--data", "d", "--out", "o", "--val-spps", "4,x"])
     assert "expected comma-separated integers" in capsys.readouterr().err
+
+
+def test_fine_tuning_starts_from_the_given_weights_and_scores_them_first(dataset, tmp_path):
+    from jaxdenoise.methods import get
+    from jaxdenoise.train import load_validation, validate
+
+    train("lbf", dataset, tmp_path / "base", steps=2, config=CFG, progress=False)
+    base, _ = checkpoint.load(tmp_path / "base" / "weights")
+    tuned = train("lbf", dataset, tmp_path / "tuned", steps=2, config=CFG, progress=False, validate_every=2,
+                  val_data=dataset, val_spps=[4, 8], init_from=tmp_path / "base" / "weights")
+    assert [v["step"] for v in tuned["validation"]] == [0, 2]  # the starting weights are scored first
+    method = get("lbf", CFG)
+    start = validate(method, restore_like(base, base), load_validation(method, dataset, [4, 8]))
+    np.testing.assert_allclose(tuned["validation"][0]["relmse"], start["relmse"], rtol=1e-6)
+    out, _ = checkpoint.load(tmp_path / "tuned" / "weights")
+    np.testing.assert_array_equal(out["norm"]["mean"], base["norm"]["mean"])  # frozen entries come along
+    assert not np.allclose(out["net"]["0"]["w"], base["net"]["0"]["w"])  # and the network was trained from there
+    # another network shape cannot start from these weights
+    with pytest.raises(TrainError, match="trained with config"):
+        train("lbf", dataset, tmp_path / "o", steps=1, config=dataclasses.replace(CFG, hidden=(4,)),
+              progress=False, init_from=tmp_path / "base" / "weights")
