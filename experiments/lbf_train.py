@@ -55,10 +55,10 @@ def ship(method: str, out: Path, note: str = "") -> Path:
     resolved = json.loads((out / "train_config.json").read_text())
     ckpt_meta = json.loads((out / "checkpoint" / "config.json").read_text())
     hist = ckpt_meta.get("history", [])
-    if (out / "summary.json").is_file():
-        summary = json.loads((out / "summary.json").read_text())
+    summary = json.loads((out / "summary.json").read_text()) if (out / "summary.json").is_file() else None
+    if summary is not None and summary["steps_done"] == ckpt_meta["step"]:
         params, meta = checkpoint.load(out / "weights")
-    else:  # the run was stopped: ship its last checkpoint (written every checkpoint_every steps)
+    else:  # the run (or its last resumed part) was stopped: its last checkpoint (every checkpoint_every steps)
         state, _ = checkpoint.load(out / "checkpoint")
         params = state["params"]
         elapsed = (out / "checkpoint" / "config.json").stat().st_mtime - (out / "train_config.json").stat().st_mtime
@@ -73,7 +73,7 @@ def ship(method: str, out: Path, note: str = "") -> Path:
         val = meta["validation"]
         scores = ckpt_meta.get("validation", [])
         every = resolved["train"].get("validate_every")
-        per = ", ".join(f"{v:.4g} at {k} spp" for k, v in val["per_spp"].items())
+        per = ", ".join(f"{v:.4g} at {k} spp" for k, v in sorted(val["per_spp"].items(), key=lambda kv: int(kv[0])))
         selection = f"""- selection: these are the params of step {val['step']} of the {summary['steps_done']}, the
   lowest mean validation RelMSE ({val['relmse']:.5g}: {per}) of the {len(scores)} validations
   (every {every} steps) on `{resolved['val_data']}` (scenes never used in training); the last
@@ -101,7 +101,7 @@ Trained with the generic loop `jaxdenoise.train.train` through:
   {len(resolved['config']['train_spps'])} spp crops of {resolved['config']['train_crop']}x{resolved['config']['train_crop']},
   seed {resolved['seed']}, filter window {2 * resolved['config']['radius'] + 1}x{2 * resolved['config']['radius'] + 1}.
 - started from: {('`' + resolved['init_from'] + '` (fine-tuned)') if resolved.get('init_from') else 'random weights (Sec. 3.1)'}.
-- time: {summary['seconds'] / 60:.1f} min wall (2 CPU cores shared with other jobs).
+- time: {summary['seconds'] / 60:.1f} min wall{'' if summary.get('line') else ' since the last start of the run'} (2 CPU cores shared with other jobs).
 - final loss (Eq. 8, mean of the last 10 mini-batches): {summary['final_loss']:.5g};
   first 10 mini-batches: {sum(hist[:10]) / max(1, len(hist[:10])):.5g}.
 {selection}
