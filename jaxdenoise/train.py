@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import inspect
 import math
 import time
 from pathlib import Path
@@ -251,7 +252,9 @@ def train(method_name: str, data_dir: str | Path, out_dir: str | Path, *, resume
     t0 = time.perf_counter()
     val_frames = load_validation(method, val_data, val_spps) if val_data is not None else None
     if dataset is None:
-        dataset = module.make_dataset(data_dir, method.config)
+        quiet = {} if progress or "progress" not in inspect.signature(module.make_dataset).parameters \
+            else {"progress": False}  # --quiet silences the data pass too
+        dataset = module.make_dataset(data_dir, method.config, **quiet)
     key = jax.random.PRNGKey(seed)
     if hasattr(module, "init_from_data"):
         params = module.init_from_data(key, method.config, dataset)
