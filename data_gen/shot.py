@@ -12,17 +12,22 @@ import hashlib
 import json
 import os
 import sys
-import time
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
 import numpy as np
 
 from .integrator import FEATURES, PathSettings, derive_seed
+from .mitsuba_setup import RenderTimer
 from .render import DEFAULT_SAMPLES_PER_PASS, film_size, render_buffers, render_reference
 from .scenes import describe, load_scene
 
 GRADIENT_FIELDS = ("dx", "dy")
+# What a gradient frame's ``seconds`` covers (written into its manifest entry).
+GRADIENT_TIME_NOTE = ("seconds = buffer render + gradient render (gradient_seconds), Dr.Jit compilation excluded "
+                      "(compile_seconds); the gradient render traces the base paths again (replayed, bit-identical "
+                      "to the colour) beside the two shifted traces, so about a third of gradient_seconds repeats "
+                      "work a combined tracer would share")
 SHOT_RECORD = "shot.json"
 INTEGRATOR_NAME = "data_gen.buffers"
 
@@ -210,41 +215,48 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
     written = 0
     try:
         for name, key, s, inst, fields in todo:
-            t0 = time.perf_counter()
             if inst is None:
-                ref, noise = render_reference(loaded, spp=s, seed=derive_seed(seed, "reference"),
-                                              settings=settings, samples_per_pass=samples_per_pass, on_pass=tick)
-                seconds = time.perf_counter() - t0
+                with RenderTimer() as timer:
+                    ref, noise = render_reference(loaded, spp=s, seed=derive_seed(seed, "reference"),
+                                                  settings=settings, samples_per_pass=samples_per_pass, on_pass=tick)
+                seconds, compile_seconds = timer.seconds, timer.compile_seconds
                 attrs = _attrs(base_key, s, None, seconds)
                 attrs["ref_relmse_halves"] = noise
                 write_buffers(out_dir / name, Buffers(color=ref, spp=s), attrs)
                 dsha = data_sha256({"color": ref})
-                rec["reference"] = {"file": name, "spp": s, "seconds": seconds, "relmse_halves": noise,
+                rec["reference"] = {"file": name, "spp": s, "seconds": seconds,
+                                    "compile_seconds": compile_seconds, "relmse_halves": noise,
                                     "relmse_estimate": noise / 4.0,
                                     "note": "relmse_halves = RelMSE between two independent half-spp renders; "
                                             "the full reference's own RelMSE is about a quarter of it"}
             else:
                 fseed = derive_seed(seed, "noisy", s, inst)
                 record_feats = [f for f in FEATURES if f in fields or f"{f}_var" in fields]
-                data = render_buffers(loaded, spp=s, seed=fseed, settings=settings, record=record_feats,
-                                      samples_per_pass=samples_per_pass, on_pass=tick)
+                with RenderTimer() as timer:
+                    data = render_buffers(loaded, spp=s, seed=fseed, settings=settings, record=record_feats,
+                                          samples_per_pass=samples_per_pass, on_pass=tick)
+                seconds, compile_seconds = timer.seconds, timer.compile_seconds
                 grad_seconds = 0.0
                 if any(f in fields for f in GRADIENT_FIELDS):
-                    tg = time.perf_counter()
-                    data.update(_gradients(loaded, s, fseed, settings, samples_per_pass))
-                    grad_seconds = time.perf_counter() - tg
-                seconds = time.perf_counter() - t0
+                    with RenderTimer() as timer:
+                        data.update(_gradients(loaded, s, fseed, settings, samples_per_pass))
+                    grad_seconds = timer.seconds
+                    seconds += grad_seconds
+                    compile_seconds += timer.compile_seconds
                 bufs = Buffers(**{f: data[f] for f in fields if f in data}, spp=s)
                 attrs = _attrs(base_key, s, inst, seconds)
                 write_buffers(out_dir / name, bufs, attrs)
                 dsha = data_sha256({f: data[f] for f in fields if f in data})
                 key = dict(key)
-                files[name] = {"key": key, "seconds": seconds, "gradient_seconds": grad_seconds, "spp": s,
-                               "instance": inst, "seed": fseed, "fields": fields}
+                files[name] = {"key": key, "seconds": seconds, "compile_seconds": compile_seconds,
+                               "gradient_seconds": grad_seconds, "spp": s, "instance": inst, "seed": fseed,
+                               "fields": fields}
+                if grad_seconds:
+                    files[name]["gradient_note"] = GRADIENT_TIME_NOTE
             files.setdefault(name, {})
             files[name].update({"key": key, "sha256": sha256(out_dir / name), "data_sha256": dsha})
             if inst is None:
-                files[name].update({"seconds": seconds, "spp": s})
+                files[name].update({"seconds": seconds, "compile_seconds": compile_seconds, "spp": s})
             rec["files"] = files
             write_json(out_dir / SHOT_RECORD, rec)
             written += 1
