@@ -13,23 +13,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..arrays import is_concrete
+
 
 class FilterError(ValueError):
     """A filter was called with an argument of the wrong shape, dtype or value."""
-
-
-def is_concrete(x: Any) -> bool:
-    """True when ``x`` holds values (not a tracer under ``jit``/``grad``/``vmap``)."""
-    return not isinstance(x, jax.core.Tracer)
-
-
-def compute_dtype(*xs: Any) -> Any:
-    """float32 at least: float16/bfloat16 inputs are upcast because squared distances and window
-    sums of HDR radiance overflow float16 (max 65504) long before the result does."""
-    dt = jnp.result_type(*[x for x in xs if x is not None])
-    if not jnp.issubdtype(dt, jnp.floating) or jnp.finfo(dt).bits < 32:
-        return jnp.float32
-    return dt
 
 
 def as_image(x: Any, name: str, *, hw: tuple[int, int] | None = None, channels: int | None = None) -> jax.Array:

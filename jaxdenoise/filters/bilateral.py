@@ -52,7 +52,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._common import FilterError, as_image, as_param, check_radius, compute_dtype, is_concrete
+from ..arrays import compute_dtype, is_concrete
+from ._common import FilterError, as_image, as_param, check_radius
 from ._window import Neighbours, channel_sum, channel_sum_sq, clamp_dist, from_planar, to_planar, window_sums
 
 ZETA = 1e-10  # Eq. 11: keeps the colour distance finite where both variances are 0

@@ -28,7 +28,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._common import FilterError, as_image, as_param, check_radius, compute_dtype, is_concrete
+from ..arrays import compute_dtype, is_concrete
+from ._common import FilterError, as_image, as_param, check_radius
 from ._window import from_planar, to_planar
 from .bilateral import _cross_sums, _prepare  # per-pixel sigma: the window engine
 

@@ -22,21 +22,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._common import FilterError, as_image, check_radius, compute_dtype
+from ..arrays import compute_dtype, is_concrete
+from ._common import FilterError, as_image, check_radius
+from ._window import edge_blocks
 
 
 def remove_spikes(image, *, n_std: float = 2.0, block_radius: int = 1) -> jax.Array:
     """Replace block outliers by the block median (Sec. 4.3; module docstring)."""
     img = as_image(image, "image")
     block_radius = check_radius(block_radius, "block_radius")
-    if isinstance(n_std, jax.core.Tracer) or not np.isfinite(n_std) or float(n_std) < 0:
+    if not is_concrete(n_std) or not np.isfinite(n_std) or float(n_std) < 0:
         raise FilterError(f"argument 'n_std' is {n_std!r}; expected a static finite number >= 0")
     out_dtype = img.dtype if jnp.issubdtype(img.dtype, jnp.floating) else jnp.float32
     x = img.astype(compute_dtype(img))
-    h, w, _ = x.shape
-    r = block_radius
-    xp = jnp.pad(x, ((r, r), (r, r), (0, 0)), mode="edge")
-    block = jnp.stack([xp[a:a + h, b:b + w] for a in range(2 * r + 1) for b in range(2 * r + 1)], axis=-1)
+    block = edge_blocks(x, block_radius)  # (H, W, C, (2r+1)^2)
     stats = jax.lax.stop_gradient(block)
     mean = jnp.mean(stats, axis=-1)
     std = jnp.sqrt(jnp.mean((stats - mean[..., None]) ** 2, axis=-1))

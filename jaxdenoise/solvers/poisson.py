@@ -36,6 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxopt.linear_solve import solve_cg
 
+from ..arrays import compute_dtype, is_concrete
 from .dct import dct_apply, laplacian_eigenvalue
 
 __all__ = [
@@ -49,19 +50,6 @@ class SolverError(ValueError):
 
 
 # -- argument checks --------------------------------------------------------------------------------
-
-def _is_concrete(x: Any) -> bool:
-    return not isinstance(x, jax.core.Tracer)
-
-
-def _dtype(*xs):
-    """float32 at least: float16 inputs are upcast (the DC-mode division by alpha = 1e-6 and the
-    squared residuals overflow / lose all precision in float16)."""
-    dt = jnp.result_type(*xs)
-    if not jnp.issubdtype(dt, jnp.floating) or jnp.finfo(dt).bits < 32:
-        return jnp.float32
-    return dt
-
 
 def _check_images(fn: str, **images):
     """Validate same-shaped (H, W, C) images; NaN/Inf is refused when the values are concrete."""
@@ -77,18 +65,18 @@ def _check_images(fn: str, **images):
         elif shape != shape0:
             raise SolverError(f"{fn}: argument '{name}' has shape {shape} but '{name0}' has {shape0}; "
                               "they must match")
-        if _is_concrete(x):
+        if is_concrete(x):
             bad = int(np.size(x) - np.count_nonzero(np.isfinite(np.asarray(x))))
             if bad:
                 raise SolverError(f"{fn}: argument '{name}' has {bad} NaN/Inf value(s); expected finite values")
-    dt = _dtype(*images.values())
+    dt = compute_dtype(*images.values())  # float32 at least (none is None: refused above)
     return [jnp.asarray(x, dt) for x in images.values()]
 
 
 def _check_alpha(fn: str, alpha: Any, dtype):
     if np.ndim(alpha) != 0:
         raise SolverError(f"{fn}: argument 'alpha' has shape {np.shape(alpha)}; expected a scalar")
-    if _is_concrete(alpha):
+    if is_concrete(alpha):
         a = float(alpha)
         if not (np.isfinite(a) and a > 0):
             raise SolverError(f"{fn}: argument 'alpha' is {a}; expected a finite value > 0 "
@@ -349,7 +337,7 @@ def poisson_l1_admm(base, dx, dy, alpha, *, iters: int = 100, rho: float | None 
     if not 0 < relax < 2:
         raise SolverError(f"poisson_l1_admm: argument 'relax' is {relax}; expected in (0, 2)")
     if rho is not None:
-        if not (np.ndim(rho) == 0 and (not _is_concrete(rho) or (np.isfinite(float(rho)) and float(rho) > 0))):
+        if not (np.ndim(rho) == 0 and (not is_concrete(rho) or (np.isfinite(float(rho)) and float(rho) > 0))):
             raise SolverError(f"poisson_l1_admm: argument 'rho' is {rho!r}; expected a finite scalar > 0 or None")
         rho = jnp.asarray(rho, base.dtype)
     return _l1_admm(base, dx, dy, alpha, rho, iters=iters, relax=float(relax))
