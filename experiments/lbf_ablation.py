@@ -93,7 +93,7 @@ def main() -> None:
     results = []
     for group, label, cfg, seed, run, s in trained:
         params, _ = checkpoint.load(run / "weights")
-        fn = jax.jit(lambda p, prep, cfg=cfg: lbf._remove_spikes(lbf.filter_with(lbf.filter_params(p, prep["x"], cfg), prep, cfg)))
+        fn = jax.jit(lambda p, prep, cfg=cfg: lbf.postprocess(lbf.filter_with(lbf.filter_params(p, prep["x"], cfg), prep, cfg), cfg))
         rel, ss = [], []
         for shot, spp, prep, ref, _ in tests:
             img = np.asarray(fn(params, prep))

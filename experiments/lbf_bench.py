@@ -3,13 +3,12 @@
 
     python experiments/lbf_bench.py --data runs/lbf_eval_data --spp 4,16,64 --out docs/results/lbf_bench
 
-A folder of links holding only the chosen sampling rates (instance 00) is benchmarked; the harness
+A folder of links holding only the chosen sampling rates (the first render of each, header spp) is benchmarked; the harness
 writes results.json, results.md and error_vs_time.png into --out.
 """
 from __future__ import annotations
 
 import argparse
-import re
 import sys
 from pathlib import Path
 
@@ -17,6 +16,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from jaxdenoise import bench  # noqa: E402
+from jaxdenoise.data import discover, renders_by_spp  # noqa: E402
 
 
 def main() -> None:
@@ -30,11 +30,11 @@ def main() -> None:
     args = ap.parse_args()
     spps = {int(s) for s in args.spp.split(",")}
     work = Path(args.work)
-    for ref in sorted(Path(args.data).rglob("reference.exr")):
-        d = work / ref.parent.name
+    for shot in discover(args.data):
+        d = work / shot.name
         d.mkdir(parents=True, exist_ok=True)
-        for p in [ref] + [p for p in ref.parent.iterdir()
-                          if (m := re.match(r"^spp(\d{4})_00\.exr$", p.name)) and int(m.group(1)) in spps]:
+        first = [rs[0].path for s, rs in renders_by_spp(shot, spps).items()]  # instance 00 of each rate
+        for p in [shot.reference] + first:
             if not (d / p.name).exists():
                 (d / p.name).symlink_to(p.resolve())
     report = bench.run(work, args.methods.split(","), args.out, runs=args.runs)

@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
-import re
 import sys
 import time
 from pathlib import Path
@@ -33,6 +32,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from jaxdenoise import api, metrics  # noqa: E402
+from jaxdenoise.data import discover, renders_by_spp  # noqa: E402
 from jaxdenoise.fsutil import write_json, write_text  # noqa: E402
 from jaxdenoise.io import read_buffers, read_image  # noqa: E402
 from jaxdenoise.methods import lbf  # noqa: E402
@@ -43,15 +43,16 @@ THETA_F = (1.0, 4.0, 16.0, float("inf"))  # global feature std (noise-std units,
 
 
 def frames(data: Path, instance: int = 0, scenes: str | None = None):
-    """(shot name, spp, path, reference path) for every noisy render ``spp{spp}_{instance}``;
-    ``scenes`` ``"lo:hi"`` keeps that slice of the sorted scene folders (as `lbf_train` selects them)."""
-    pat = re.compile(rf"^spp(\d{{4}})_{instance:02d}\.exr$")
-    refs = [p / "reference.exr" for p in select_scenes(data, scenes)] if scenes else sorted(data.rglob("reference.exr"))
-    for ref in refs:
-        for p in sorted(ref.parent.iterdir()):
-            m = pat.match(p.name)
-            if m:
-                yield ref.parent.name, int(m.group(1)), p, ref
+    """(shot name, spp, path, reference path) for the ``instance``-th render (name order) of every
+    sampling rate of every shot (`jaxdenoise.data`, spp from the EXR header); ``scenes`` ``"lo:hi"``
+    keeps those scenes (as `lbf_train` selects them)."""
+    keep = {p.name for p in select_scenes(data, scenes)} if scenes else None
+    for shot in discover(data):
+        if keep is not None and shot.name not in keep:
+            continue
+        for spp, renders in sorted(renders_by_spp(shot).items()):
+            if instance < len(renders):
+                yield shot.name, spp, renders[instance].path, shot.reference
 
 
 def main() -> None:
@@ -85,7 +86,7 @@ def main() -> None:
         h, w = prep["color"].shape[:2]
         k = len(cfg.features)
         lam = jnp.concatenate([jnp.full((h, w, 1), lam_s), jnp.full((h, w, k), lam_f)], -1)
-        return lbf._remove_spikes(lbf.filter_with(lam, prep, cfg))
+        return lbf.postprocess(lbf.filter_with(lam, prep, cfg), cfg)
 
     grid = list(itertools.product(THETA_S, THETA_F))
     records = []

@@ -81,7 +81,7 @@ def main() -> None:
         b = tile(b0.only(lbf.needs(cfg)), args.height, args.width)
         prep, t_feat = timed(lambda bb: lbf.prepare(bb, cfg), b, runs=args.runs)
         lam, t_net = timed(lambda p, x: lbf.filter_params(p, x, cfg), params, prep["x"], runs=args.runs)
-        _, t_filt = timed(lambda l, pr: lbf._remove_spikes(lbf.filter_with(l, pr, cfg)), lam, prep, runs=args.runs)
+        _, t_filt = timed(lambda l, pr: lbf.postprocess(lbf.filter_with(l, pr, cfg), cfg), lam, prep, runs=args.runs)
         total = t_feat["median"] + t_net["median"] + t_filt["median"]
         res["methods"][name] = {"features": t_feat, "network": t_net, "filter": t_filt, "total_median": total,
                                 "ratio_to_gaussian": total / g["median"]}

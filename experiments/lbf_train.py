@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import shutil
 import sys
 import time
@@ -30,12 +31,18 @@ from jaxdenoise.methods import WEIGHTS_DIR  # noqa: E402
 
 
 def select_scenes(data: Path, spec: str) -> list[Path]:
-    """The ``lo:hi`` slice of the sorted scene folders (those holding a ``reference.exr``) of ``data``."""
+    """Scenes ``lo`` .. ``hi - 1`` of ``data``: the folders holding a ``reference.exr`` whose name
+    ends in that index (data_gen's ``scene_XXXX``), so a partly rendered dataset selects the same
+    scenes as a complete one; folders without an index in their name are sliced in sorted order."""
     try:
         lo, hi = (int(x) for x in spec.split(":"))
     except ValueError:
         raise SystemExit(f"--scenes {spec!r}: expected lo:hi, two integers (e.g. 0:32)") from None
-    return sorted(p for p in data.iterdir() if p.is_dir() and (p / "reference.exr").is_file())[lo:hi]
+    shots = sorted(p for p in data.iterdir() if p.is_dir() and (p / "reference.exr").is_file())
+    index = [re.search(r"_(\d+)$", p.name) for p in shots]
+    if shots and all(index):
+        return [p for p, m in zip(shots, index) if lo <= int(m.group(1)) < hi]
+    return shots[lo:hi]
 
 
 def link_scenes(data: Path, spec: str, dest: Path) -> list[str]:

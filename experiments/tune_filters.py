@@ -30,7 +30,7 @@ import jax
 import numpy as np
 
 from jaxdenoise import io, metrics
-from jaxdenoise.bench import discover
+from jaxdenoise.data import discover
 from jaxdenoise.fsutil import write_json, write_text
 from jaxdenoise.methods import bilateral as method
 

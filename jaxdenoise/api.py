@@ -1,6 +1,7 @@
-"""Notebook entry points: `denoise` (one call) and `load` (a jitted inference function).
+"""Notebook entry points: `denoise` (one frame or a batch), `denoise_sequence` (a video, through the
+sequence driver `jaxdenoise.sequence`) and `load` (a jitted inference function with ``.sequence``).
 
-Both resolve a registered method, its parameters (explicit ``params``, a ``weights`` folder, the
+They resolve a registered method, its parameters (explicit ``params``, a ``weights`` folder, the
 shipped weights in ``jaxdenoise/weights/``, or none for methods without parameters), check the
 frame carries what the method needs, and feed it nothing else.
 """
@@ -45,16 +46,17 @@ def resolve(method: str | Method, weights: str | os.PathLike | None = None) -> t
     return m, jax.tree_util.tree_map(np.asarray, params)
 
 
-def check_finite(buffers: Buffers, names) -> None:
-    """Raise naming the buffer and the count of NaN/Inf values (methods are not fed garbage)."""
+def check_finite(buffers: Buffers, names, *, where: str | None = None) -> None:
+    """Raise naming the buffer (and ``where``, e.g. the file) and the count of NaN/Inf values
+    (methods are not fed garbage)."""
     for name in sorted(names):
         value = getattr(buffers, name)
         if value is None:
             continue
         bad = int(np.size(value) - np.isfinite(np.asarray(value, dtype=np.float32)).sum())
         if bad:
-            raise BuffersError(f"buffer '{name}' has {bad} NaN/Inf value(s); repair the input first "
-                               f"(jaxdenoise.io.read_buffers(..., repair='zero'))")
+            raise BuffersError(f"{where + ': ' if where else ''}buffer '{name}' has {bad} NaN/Inf value(s); "
+                               f"repair the input first (jaxdenoise.io.read_buffers(..., repair='zero'))")
 
 
 @functools.lru_cache(maxsize=64)
@@ -70,11 +72,15 @@ def inference_fn(m: Method) -> Callable[[Any, Buffers], Any]:
     return lambda params, buffers: m.module.apply(params, buffers, m.config)
 
 
-def prepare(m: Method, buffers: Buffers) -> Buffers:
-    """Validate ``buffers`` for ``m`` and keep only what it reads (required + present optional ones)."""
-    buffers.check_needs(m.required(), m.name)
+def prepare(m: Method, buffers: Buffers, *, where: str | None = None) -> Buffers:
+    """Validate ``buffers`` for ``m`` and keep only what it reads (required + present optional ones)
+    and the frame's metadata (``spp``; `Buffers.only` never drops it). ``where`` (e.g. the file
+    name) goes into every error."""
+    if not isinstance(buffers, Buffers):
+        raise BuffersError(f"{where + ': ' if where else ''}expected a jaxdenoise.Buffers, got {type(buffers).__name__}")
+    buffers.check_needs(m.required(), m.name, where=where)
     used = m.needs() & buffers.present()
-    check_finite(buffers, used)
+    check_finite(buffers, used, where=where)
     return buffers.only(used)
 
 
@@ -89,14 +95,57 @@ def denoise(buffers: Buffers, method: str = "gaussian", params: Any = None, *,
     return np.asarray(out, dtype=np.float32)
 
 
+def denoise_sequence(frames, method: str = "gaussian", params: Any = None, *,
+                     weights: str | os.PathLike | None = None) -> np.ndarray:
+    """Denoise a video: ``frames`` is an iterable of single-frame `Buffers` in time order (or one
+    `Buffers` with a leading time axis). Recurrent methods carry their state, windowed ones (LBF)
+    read their neighbours, others run frame by frame (`jaxdenoise.sequence`). Returns
+    ``(T, H, W, 3)`` float32."""
+    from .sequence import run_all
+
+    if params is not None:
+        m = get(method) if isinstance(method, str) else method
+    else:
+        m, params = resolve(method, weights)
+    return run_all(m, params, unstack(frames))
+
+
+def unstack(frames) -> list[Buffers]:
+    """A list of single frames from a list of frames or one `Buffers` with a leading time axis."""
+    if isinstance(frames, Buffers):
+        if np.ndim(frames.color) != 4:
+            raise BuffersError(f"a sequence as one Buffers needs a leading time axis: (T, H, W, 3); "
+                               f"'color' has shape {np.shape(frames.color)}")
+        t_len = np.shape(frames.color)[0]
+
+        def frame(t: int) -> Buffers:
+            d = frames.to_dict()
+            spp = d.pop("spp", None)
+            if spp is not None and np.ndim(spp) > 0:
+                spp = spp[t]
+            return Buffers(**{k: v[t] for k, v in d.items()}, spp=spp)
+
+        return [frame(t) for t in range(t_len)]
+    return list(frames)
+
+
 def load(method: str, path: str | os.PathLike | None = None) -> Callable[[Buffers], Any]:
-    """A jitted ``fn(buffers) -> image`` with the method's parameters bound (shipped, or ``path``)."""
+    """A jitted ``fn(buffers) -> image`` with the method's parameters bound (shipped, or ``path``).
+
+    ``fn.sequence(frames)`` runs the same method and parameters over a video through the sequence
+    driver (a generator of denoised frames, in order; see `denoise_sequence`)."""
     m, params = resolve(method, path)
     fn = inference_fn(m)
 
     def infer(buffers: Buffers):
         return fn(params, prepare(m, buffers))
 
+    def sequence(frames):
+        from .sequence import run
+
+        return run(m, params, unstack(frames))
+
     infer.method = m  # type: ignore[attr-defined]
     infer.params = params  # type: ignore[attr-defined]
+    infer.sequence = sequence  # type: ignore[attr-defined]
     return infer

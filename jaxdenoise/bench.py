@@ -1,14 +1,21 @@
 """Error against run time: the harness behind ``jaxdenoise bench`` (DESIGN.md "Error against run time").
 
-A data folder is walked recursively; every folder holding a ``reference.exr`` is one shot and
-every other EXR in it is a noisy render of that shot (its integer ``spp`` header attribute gives
-the sample count). Every chosen method runs on every render; each record holds relmse, ssim,
-psnr, seconds (median of ``runs`` >= 5 timed calls after a warm-up), compile seconds (XLA
-compilation, measured ahead of time and reported separately) and peak memory.
+A data folder is read by `jaxdenoise.data` (shots, renders with their header ``spp``, and
+``frame_XXXX/`` sequences). Every chosen method runs on every render; each record holds relmse,
+ssim, psnr, seconds (median of ``runs`` >= 5 timed calls after a warm-up), compile seconds (XLA
+compilation, measured ahead of time and reported separately) and memory. Sequences go through the
+one sequence driver (`jaxdenoise.sequence`): recurrent methods carry their state, windowed ones
+(LBF) read their neighbours, others run frame by frame; each frame gets a record, and each
+(sequence, render, method) a temporal record with the temporal error (`metrics.temporal_error`)
+and the mean RelMSE / SSIM over its frames.
 
-Peak memory: for jitted methods, XLA's compiled memory analysis (arguments + outputs + temporaries,
-exact for the compiled program); for foreign code (OIDN) the growth of the process's resident set
-from before its warm-up call to the end of the timed runs, sampled every millisecond (``memory_source`` says which).
+Memory, one quantity per column (docs/metrics.md):
+
+- ``rss_peak_bytes``: the growth of the process's resident set from just before the warm-up call
+  to the end of the timed runs, sampled every millisecond, for every method alike (JAX or foreign);
+- ``xla_bytes``: XLA's compiled memory analysis of a jitted method's program (arguments + outputs
+  + temporaries), exact for that program; ``None`` for foreign code and for sequences (the driver
+  runs several programs).
 """
 from __future__ import annotations
 
@@ -27,67 +34,12 @@ import numpy as np
 from . import metrics
 from .api import inference_fn, prepare, resolve
 from .buffers import Buffers
+from .data import Shot, discover, sequences
 from .fsutil import atomic_path, write_json, write_text
 from .io import read_buffers, read_image
 from .methods import Method, MethodError
 
-REFERENCE = "reference.exr"
-SHOT_RECORD = "shot.json"  # data_gen's per-shot manifest (render timings)
 MIN_RUNS = 5
-
-
-@dataclasses.dataclass(frozen=True)
-class Render:
-    path: Path
-    spp: int | None
-    render_seconds: float | None
-
-
-@dataclasses.dataclass(frozen=True)
-class Shot:
-    folder: Path
-    reference: Path
-    renders: tuple[Render, ...]
-
-    @property
-    def name(self) -> str:
-        return self.folder.name
-
-
-def discover(data_dir: str | os.PathLike) -> list[Shot]:
-    """Every shot (folder with ``reference.exr``) under ``data_dir``, sorted by path.
-
-    A render's time comes from its ``render_seconds`` header attribute or, for data_gen output
-    (whose EXRs keep no timings so they stay byte-identical across runs), from the ``seconds`` of
-    its entry in the shot's ``shot.json``; without either it is unknown (None).
-    """
-    from .io import read_header
-
-    root = Path(data_dir)
-    if not root.is_dir():
-        raise FileNotFoundError(f"{root}: not a folder")
-    shots = []
-    refs = sorted(Path(d) / REFERENCE for d, _, files in os.walk(root, followlinks=True) if REFERENCE in files)
-    for ref in refs:  # os.walk with followlinks: shot folders linked into ``root`` count too
-        manifest = ref.parent / SHOT_RECORD
-        timings = {}
-        if manifest.is_file():
-            try:
-                files = json.loads(manifest.read_text()).get("files", {})
-                timings = {k: v.get("seconds") for k, v in files.items() if isinstance(v, dict)}
-            except (json.JSONDecodeError, AttributeError) as e:
-                raise ValueError(f"{manifest}: not a valid shot record ({e})") from None
-        renders = []
-        for p in sorted(ref.parent.glob("*.exr")):
-            if p.name == REFERENCE or p.name.startswith("."):
-                continue
-            h = read_header(p)
-            rs = h.get("render_seconds", timings.get(p.name))
-            renders.append(Render(p, h.get("spp"), float(rs) if rs is not None else None))
-        shots.append(Shot(ref.parent, ref, tuple(renders)))
-    if not shots:
-        raise FileNotFoundError(f"{root}: no shot found (a shot is a folder holding {REFERENCE} and noisy EXRs)")
-    return shots
 
 
 class _RssPeak:
@@ -125,30 +77,31 @@ def _block(x):
 
 
 def time_method(m: Method, params: Any, buffers: Buffers, *, runs: int = MIN_RUNS,
-                cache: dict | None = None) -> dict[str, Any]:
-    """Run ``m`` on one frame by the protocol; returns image, seconds, compile_seconds, peak_bytes."""
+                cache: dict | None = None, where: str | None = None) -> dict[str, Any]:
+    """Run ``m`` on one frame by the protocol; returns image, seconds, compile_seconds,
+    rss_peak_bytes, xla_bytes (module docstring)."""
     if runs < MIN_RUNS:
         raise ValueError(f"runs={runs}; the protocol needs at least {MIN_RUNS} timed runs")
-    buffers = jax.device_put(prepare(m, buffers)) if m.jittable else prepare(m, buffers)
+    buffers = prepare(m, buffers, where=where)
+    buffers = jax.device_put(buffers) if m.jittable else buffers
     compile_s = 0.0
+    xla_bytes = None
     if m.jittable:
         key = (m.name, m.config, jax.tree_util.tree_structure(buffers),
                tuple(np.shape(x) for x in jax.tree_util.tree_leaves(buffers)))
         if cache is not None and key in cache:
-            compiled, mem = cache[key]
+            compiled, xla_bytes = cache[key]
         else:
             t0 = time.perf_counter()
             compiled = inference_fn(m).lower(params, buffers).compile()
             compile_s = time.perf_counter() - t0
             ma = compiled.memory_analysis()
-            mem = (ma.argument_size_in_bytes + ma.output_size_in_bytes + ma.temp_size_in_bytes) if ma else None
+            xla_bytes = (ma.argument_size_in_bytes + ma.output_size_in_bytes + ma.temp_size_in_bytes) if ma else None
             if cache is not None:
-                cache[key] = (compiled, mem)
+                cache[key] = (compiled, xla_bytes)
         fn: Callable = compiled
-        source = "xla"
     else:
         fn = inference_fn(m)
-        mem, source = None, "rss"
     times = []
     # The resident-set window opens before the warm-up: foreign code allocates its buffers there.
     with _RssPeak() as rss:
@@ -157,11 +110,34 @@ def time_method(m: Method, params: Any, buffers: Buffers, *, runs: int = MIN_RUN
             t0 = time.perf_counter()
             out = _block(fn(params, buffers))
             times.append(time.perf_counter() - t0)
-    if mem is None:
-        mem = rss.bytes
     return {"image": np.asarray(out, dtype=np.float32), "seconds": statistics.median(times),
-            "seconds_all": times, "compile_seconds": compile_s, "peak_bytes": int(mem),
-            "memory_source": source}
+            "seconds_all": times, "compile_seconds": compile_s, "rss_peak_bytes": int(rss.bytes),
+            "xla_bytes": None if xla_bytes is None else int(xla_bytes)}
+
+
+def time_sequence(m: Method, params: Any, frames: list[Buffers], *, runs: int = MIN_RUNS,
+                  names: list[str] | None = None) -> dict[str, Any]:
+    """Run ``m`` over a whole sequence through the sequence driver by the protocol: one warm-up pass
+    (compiles every per-frame program), then ``runs`` timed passes. ``seconds`` is the median pass
+    divided by the number of frames (the per-frame cost in a stream); ``compile_seconds`` is the
+    warm-up pass minus the median pass (the one-off part)."""
+    from .sequence import run_all
+
+    if runs < MIN_RUNS:
+        raise ValueError(f"runs={runs}; the protocol needs at least {MIN_RUNS} timed runs")
+    t_len = len(frames)
+    times = []
+    with _RssPeak() as rss:
+        t0 = time.perf_counter()
+        out = run_all(m, params, frames, names=names)  # warm-up (numpy out: every frame finished)
+        warm = time.perf_counter() - t0
+        for _ in range(runs):
+            t0 = time.perf_counter()
+            out = run_all(m, params, frames, names=names)
+            times.append(time.perf_counter() - t0)
+    med = statistics.median(times)
+    return {"images": out, "seconds": med / t_len, "seconds_all": [t / t_len for t in times],
+            "compile_seconds": max(0.0, warm - med), "rss_peak_bytes": int(rss.bytes), "xla_bytes": None}
 
 
 def score(image: np.ndarray, ref: np.ndarray) -> dict[str, float]:
@@ -169,15 +145,21 @@ def score(image: np.ndarray, ref: np.ndarray) -> dict[str, float]:
             "psnr": float(metrics.psnr(image, ref))}
 
 
+def _relative(path: str | os.PathLike, start: str | os.PathLike) -> str:
+    """``path`` relative to ``start`` (reports never carry absolute machine paths)."""
+    return os.path.relpath(Path(path).resolve(), Path(start).resolve())
+
+
 def run(data_dir: str | os.PathLike, methods: Iterable[str], out_dir: str | os.PathLike, *,
         runs: int = MIN_RUNS, weights: dict[str, str] | None = None, progress: bool = True) -> dict:
     """Benchmark ``methods`` on every render under ``data_dir``; writes the three reports into
-    ``out_dir`` and returns ``{"records": [...], "skipped": [...], "config": {...}}``."""
+    ``out_dir`` and returns ``{"records": [...], "temporal": [...], "skipped": [...], "config": {...}}``."""
     from tqdm import tqdm
 
     t_start = time.perf_counter()
-    out_dir = Path(out_dir)
+    data_dir, out_dir = Path(data_dir), Path(out_dir)
     shots = discover(data_dir)
+    seqs, singles = sequences(shots)
     resolved: dict[str, tuple[Method, Any]] = {}
     skipped: list[dict] = []
     for name in methods:
@@ -187,16 +169,18 @@ def run(data_dir: str | os.PathLike, methods: Iterable[str], out_dir: str | os.P
             skipped.append({"method": name, "reason": str(e)})
     if not resolved:
         raise MethodError("no method can run: " + "; ".join(s["reason"] for s in skipped))
-    config = {"data_dir": str(Path(data_dir).resolve()), "methods": list(methods), "runs": runs,
-              "weights": weights or {}, "shots": len(shots),
-              "renders": sum(len(s.renders) for s in shots),
+    out_dir.mkdir(parents=True, exist_ok=True)
+    config = {"data_dir": _relative(data_dir, out_dir), "methods": list(methods), "runs": runs,
+              "weights": {k: _relative(v, out_dir) for k, v in (weights or {}).items()}, "shots": len(shots),
+              "sequences": len(seqs), "renders": sum(len(s.renders) for s in shots),
               "method_configs": {n: dataclasses.asdict(m.config) for n, (m, _) in resolved.items()},
               "jax": jax.__version__, "device": str(jax.devices()[0]), "cpu_count": os.cpu_count()}
     records: list[dict] = []
+    temporal: list[dict] = []
     cache: dict = {}
-    total = sum(len(s.renders) for s in shots) * len(resolved)
+    total = (sum(len(s.renders) for s in singles) + sum(len(q.render_names()) for q in seqs)) * len(resolved)
     bar = tqdm(total=total, desc="bench", unit="run", disable=not progress, leave=False)
-    for shot in shots:
+    for shot in singles:
         ref = read_image(shot.reference)
         for render in shot.renders:
             buffers, _ = read_buffers(render.path)
@@ -206,44 +190,81 @@ def run(data_dir: str | os.PathLike, methods: Iterable[str], out_dir: str | os.P
                 bar.set_postfix_str(f"{shot.name}/{render.path.name} {name}")
                 missing = sorted(m.required() - buffers.present())
                 if missing:
-                    skipped.append({"method": name, "file": str(render.path),
+                    skipped.append({"method": name, "file": str(render.path.relative_to(data_dir)),
                                     "reason": f"frame lacks buffer(s) {missing}"})
                     bar.update(1)
                     continue
-                r = time_method(m, params, buffers, runs=runs, cache=cache)
-                rec = {"shot": shot.name, "file": str(render.path.relative_to(Path(data_dir))),
-                       "spp": render.spp, "render_seconds": render.render_seconds, "method": name,
-                       "seconds": r["seconds"], "seconds_all": r["seconds_all"],
-                       "compile_seconds": r["compile_seconds"], "peak_bytes": r["peak_bytes"],
-                       "memory_source": r["memory_source"], "height": int(ref.shape[0]),
-                       "width": int(ref.shape[1])}
-                rec.update(score(r["image"], ref))
-                records.append(rec)
+                r = time_method(m, params, buffers, runs=runs, cache=cache, where=str(render.path))
+                records.append(_record(shot, render, name, r, r["image"], ref, data_dir))
+                bar.update(1)
+    for seq in seqs:
+        refs = [read_image(s.reference) for s in seq.shots]
+        for rname in seq.render_names():
+            renders = [next(r for r in s.renders if r.path.name == rname) for s in seq.shots]
+            frames = [read_buffers(r.path)[0] for r in renders]
+            for r, b, ref in zip(renders, frames, refs):
+                if b.shape != ref.shape[:-1]:
+                    raise ValueError(f"{r.path}: size {b.shape} differs from its reference {ref.shape[:-1]}")
+            for name, (m, params) in resolved.items():
+                bar.set_postfix_str(f"{seq.name}/{rname} {name}")
+                lacking = {str(r.path.relative_to(data_dir)): sorted(m.required() - b.present())
+                           for r, b in zip(renders, frames) if m.required() - b.present()}
+                if lacking:
+                    first = next(iter(lacking))
+                    skipped.append({"method": name, "file": first,
+                                    "reason": f"sequence frame lacks buffer(s) {lacking[first]}"})
+                    bar.update(1)
+                    continue
+                r = time_sequence(m, params, frames, runs=runs, names=[str(x.path) for x in renders])
+                recs = [_record(s, x, name, r, img, ref, data_dir, sequence=_relative(seq.folder, data_dir),
+                                frame=s.frame) for s, x, img, ref in zip(seq.shots, renders, r["images"], refs)]
+                records.extend(recs)
+                temporal.append({
+                    "sequence": _relative(seq.folder, data_dir), "render": rname, "method": name,
+                    "spp": renders[0].spp, "frames": len(frames), "kind": m.temporal,
+                    "temporal_error": float(metrics.temporal_error(r["images"], np.stack(refs))) if len(frames) > 1 else None,
+                    "relmse": float(np.mean([x["relmse"] for x in recs])),
+                    "ssim": float(np.mean([x["ssim"] for x in recs])),
+                    "seconds_per_frame": r["seconds"]})
                 bar.update(1)
     bar.close()
     config["wall_seconds"] = time.perf_counter() - t_start
-    report = {"records": records, "skipped": skipped, "config": config}
+    report = {"records": records, "temporal": temporal, "skipped": skipped, "config": config}
     write_reports(report, out_dir)
     return report
+
+
+def _record(shot: Shot, render, method: str, r: dict, image: np.ndarray, ref: np.ndarray, data_dir: Path,
+            **extra: Any) -> dict:
+    rec = {"shot": shot.name, "file": str(render.path.relative_to(data_dir)), "spp": render.spp,
+           "render_seconds": render.render_seconds, "method": method, "seconds": r["seconds"],
+           "seconds_all": r["seconds_all"], "compile_seconds": r["compile_seconds"],
+           "rss_peak_bytes": r["rss_peak_bytes"], "xla_bytes": r["xla_bytes"],
+           "height": int(ref.shape[0]), "width": int(ref.shape[1]), **extra}
+    rec.update(score(image, ref))
+    return rec
 
 
 # -- reports -----------------------------------------------------------------------------------------
 
 def summarize(records: list[dict]) -> list[dict]:
-    """One row per (method, spp): mean relmse/ssim/psnr over frames, median seconds, etc."""
+    """One row per (method, spp): mean relmse/ssim/psnr over frames, median seconds, memory.
+
+    ``rss_peak_mb`` is the method's largest resident-set growth over **all** its frames (growth
+    shows only where the process first allocates, so a per-spp maximum would depend on the order
+    of the frames); ``xla_mb`` is the largest compiled estimate among the row's frames (None when no
+    frame of the row has one)."""
     groups: dict[tuple, list[dict]] = {}
     for r in records:
         groups.setdefault((r["method"], r["spp"]), []).append(r)
     order = {m: i for i, m in enumerate(dict.fromkeys(r["method"] for r in records))}
-    # Resident-set growth (foreign code) shows only where the process first allocates: report the
-    # method's maximum over all its frames, not over one spp's frames.
     rss_peak: dict[str, int] = {}
     for r in records:
-        if r.get("memory_source") == "rss":
-            rss_peak[r["method"]] = max(rss_peak.get(r["method"], 0), r["peak_bytes"])
+        rss_peak[r["method"]] = max(rss_peak.get(r["method"], 0), int(r["rss_peak_bytes"]))
     rows = []
     for (method, spp), rs in sorted(groups.items(), key=lambda kv: (order[kv[0][0]], kv[0][1] or 0)):
         render = [r["render_seconds"] for r in rs]
+        xla = [r["xla_bytes"] for r in rs if r.get("xla_bytes") is not None]
         rows.append({
             "method": method, "spp": spp, "frames": len(rs),
             "relmse": float(np.mean([r["relmse"] for r in rs])),
@@ -251,19 +272,34 @@ def summarize(records: list[dict]) -> list[dict]:
             "psnr": float(np.mean([r["psnr"] for r in rs])),
             "seconds": float(np.median([r["seconds"] for r in rs])),
             "compile_seconds": float(max(r["compile_seconds"] for r in rs)),
-            "peak_mb": float(rss_peak.get(method, max(r["peak_bytes"] for r in rs))) / 2**20,
+            "rss_peak_mb": rss_peak[method] / 2**20,
+            "xla_mb": max(xla) / 2**20 if xla else None,
             "render_seconds": float(np.median(render)) if all(x is not None for x in render) else None,
         })
     return rows
 
 
 def markdown_table(rows: list[dict]) -> str:
-    lines = ["| method | spp | frames | RelMSE | SSIM | PSNR (dB) | time (ms, median) | compile (s) | peak MB |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = ["| method | spp | frames | RelMSE | SSIM | PSNR (dB) | time (ms, median) | compile (s) "
+             "| RSS peak MB | XLA MB |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
+        xla = f"{r['xla_mb']:.1f}" if r.get("xla_mb") is not None else "-"
         lines.append(f"| {r['method']} | {r['spp'] if r['spp'] is not None else '?'} | {r['frames']} | "
                      f"{r['relmse']:.4g} | {r['ssim']:.4f} | {r['psnr']:.2f} | {1e3 * r['seconds']:.2f} | "
-                     f"{r['compile_seconds']:.2f} | {r['peak_mb']:.1f} |")
+                     f"{r['compile_seconds']:.2f} | {r['rss_peak_mb']:.1f} | {xla} |")
+    return "\n".join(lines)
+
+
+def temporal_table(temporal: list[dict]) -> str:
+    """Markdown table of the per-sequence records (temporal error beside the per-frame errors)."""
+    lines = ["| sequence | render | spp | method | kind | frames | temporal error | RelMSE (mean) | SSIM (mean) "
+             "| time per frame (ms) |", "|---|---|---:|---|---|---:|---:|---:|---:|---:|"]
+    for t in temporal:
+        te = f"{t['temporal_error']:.4g}" if t["temporal_error"] is not None else "-"
+        lines.append(f"| {t['sequence']} | {t['render']} | {t['spp']} | {t['method']} | {t['kind']} | "
+                     f"{t['frames']} | {te} | {t['relmse']:.4g} | {t['ssim']:.4f} | "
+                     f"{1e3 * t['seconds_per_frame']:.1f} |")
     return "\n".join(lines)
 
 
@@ -271,7 +307,7 @@ def load_report(out_dir: str | os.PathLike) -> dict:
     """Read back what `write_reports` wrote (to re-render tables and plots without re-running)."""
     out_dir = Path(out_dir)
     res = json.loads((out_dir / "results.json").read_text())
-    return {"records": res["records"], "skipped": res["skipped"],
+    return {"records": res["records"], "temporal": res.get("temporal", []), "skipped": res["skipped"],
             "config": json.loads((out_dir / "config.json").read_text())}
 
 
@@ -279,16 +315,23 @@ def write_reports(report: dict, out_dir: str | os.PathLike) -> None:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     rows = summarize(report["records"])
+    temporal = report.get("temporal", [])
     write_json(out_dir / "results.json", {"records": report["records"], "summary": rows,
-                                          "skipped": report["skipped"]})
+                                          "temporal": temporal, "skipped": report["skipped"]})
     write_json(out_dir / "config.json", report["config"])
     cfg = report["config"]
     md = ["# Error against run time\n",
-          f"Data: `{cfg['data_dir']}` ({cfg['shots']} shot(s), {cfg['renders']} render(s)); "
+          f"Data: `{cfg['data_dir']}` (relative to this report; {cfg['shots']} shot(s), "
+          f"{cfg.get('sequences', 0)} sequence(s), {cfg['renders']} render(s)); "
           f"device: {cfg['device']}, {cfg['cpu_count']} cores; jax {cfg['jax']}.",
           f"RelMSE = mean((x - ref)^2 / (ref^2 + 0.01)); SSIM and PSNR on clip(x, 0, 1)^(1/2.2); "
-          f"time = median of {cfg['runs']} runs after a warm-up, compile time separate "
+          f"time = median of {cfg['runs']} runs after a warm-up, compile time separate; RSS peak = the "
+          f"method's largest resident-set growth over its frames, XLA = compiled program footprint "
           f"(see docs/metrics.md).\n", markdown_table(rows), ""]
+    if temporal:
+        md += ["## Sequences\n", "Every method through the sequence driver (kind: causal = recurrent "
+               "state, windowed = reads neighbouring frames, frame = frame by frame); temporal error = "
+               "`metrics.temporal_error` over consecutive frames.\n", temporal_table(temporal), ""]
     if report["skipped"]:
         md.append("Not run:\n")
         seen = set()

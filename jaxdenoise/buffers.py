@@ -38,7 +38,10 @@ CHANNELS: dict[str, tuple[str, ...]] = {
 IMAGE_FIELDS: tuple[str, ...] = tuple(CHANNELS)
 # Features whose variance is a separate field (Kalantari 2015 Eq. 12 uses a per-feature variance).
 FEATURES: tuple[str, ...] = ("albedo", "albedo2", "normal", "position", "depth", "visibility", "roughness")
-ALL_FIELDS: tuple[str, ...] = IMAGE_FIELDS + ("spp",)
+# Per-frame metadata: travels with the frame through every path (`Buffers.only`, `stack`, batches,
+# sequences) whatever a method reads, so no selection of buffers can drop it (DESIGN.md "Methods").
+METADATA_FIELDS: tuple[str, ...] = ("spp",)
+ALL_FIELDS: tuple[str, ...] = IMAGE_FIELDS + METADATA_FIELDS
 
 
 class BuffersError(ValueError):
@@ -123,13 +126,21 @@ class Buffers:
                 raise BuffersError(f"{where}: 'spp' has shape {tuple(self.spp.shape)}; expected () or {lead}")
         return self
 
-    def check_needs(self, needs: Iterable[str], method: str) -> None:
-        """Raise a clear error when ``method`` needs buffers this frame lacks."""
+    def check_needs(self, needs: Iterable[str], method: str, *, where: str | None = None) -> None:
+        """Raise a clear error when ``method`` needs buffers (or metadata such as ``spp``) this frame
+        lacks; ``where`` (e.g. the file name) prefixes the message."""
         missing = sorted(f for f in needs if getattr(self, f, None) is None)
-        if missing:
+        if not missing:
+            return
+        prefix = f"{where}: " if where else ""
+        meta = [f for f in missing if f in METADATA_FIELDS]
+        if meta:
             raise BuffersError(
-                f"method '{method}' needs buffer(s) {missing}, which this input lacks "
-                f"(present: {sorted(self.present())}); render them (data_gen) or pick another method")
+                f"{prefix}method '{method}' needs the frame's {meta} (e.g. the integer 'spp' header attribute "
+                f"of an EXR, or Buffers(spp=...)), which this input lacks; it is never guessed")
+        raise BuffersError(
+            f"{prefix}method '{method}' needs buffer(s) {missing}, which this input lacks "
+            f"(present: {sorted(self.present())}); render them (data_gen) or pick another method")
 
     # -- conveniences ------------------------------------------------------------------------------
     def present(self) -> frozenset[str]:
@@ -144,8 +155,9 @@ class Buffers:
         return dataclasses.replace(self, **changes)
 
     def only(self, names: Iterable[str]) -> "Buffers":
-        """A copy keeping ``color`` and the given buffers, every other one set to ``None``."""
-        keep = set(names) | {"color"}
+        """A copy keeping ``color``, the given buffers and the frame's metadata (``spp``: never
+        dropped, whatever ``names`` says), every other buffer set to ``None``."""
+        keep = set(names) | {"color"} | set(METADATA_FIELDS)
         return Buffers(**{f: (getattr(self, f) if f in keep else None) for f in ALL_FIELDS})
 
     def astype(self, dtype: Any) -> "Buffers":
@@ -188,3 +200,22 @@ def stack(frames: Iterable[Buffers]) -> Buffers:
             raise BuffersError(
                 f"stack: frame {i} has buffers {sorted(f.present())} but frame 0 has {sorted(first)}")
     return jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *frames)
+
+
+def map_frames(fn: Any, buffers: Buffers) -> Any:
+    """``fn(frame) -> (H, W, C)`` over every frame of ``buffers``: a single ``(H, W, C)`` frame goes
+    straight to ``fn``; leading axes are a batch of independent frames (DESIGN.md "Methods"), run one
+    frame at a time with ``jax.lax.map`` (the memory of one frame's intermediates, one compiled
+    body). A scalar ``spp`` applies to every frame of the batch."""
+    lead = tuple(np.shape(buffers.color)[:-3])
+    if not lead:
+        return fn(buffers)
+    n = int(np.prod(lead))
+    fields = {k: v for k, v in buffers.to_dict().items() if k not in METADATA_FIELDS}
+    flat = {k: jax.numpy.reshape(v, (n,) + tuple(np.shape(v)[len(lead):])) for k, v in fields.items()}
+    for k in METADATA_FIELDS:
+        v = getattr(buffers, k)
+        if v is not None:
+            flat[k] = jax.numpy.reshape(jax.numpy.broadcast_to(jax.numpy.asarray(v), lead), (n,))
+    out = jax.lax.map(lambda d: fn(Buffers(**d)), flat)
+    return out.reshape(lead + tuple(out.shape[1:]))

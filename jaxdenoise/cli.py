@@ -31,40 +31,71 @@ def _cmd_denoise(args: argparse.Namespace) -> int:
     import numpy as np
 
     from .api import inference_fn, prepare, resolve
-    from .buffers import stack
     from .fsutil import write_json
-    from .io import read_buffers, read_sequence, write_image
+    from .io import read_buffers, write_image
 
     t0 = time.perf_counter()
+    if args.frames:
+        return _denoise_frames(args, t0)
+    if args.input is None:
+        raise SystemExit("error: give an input EXR, or --frames GLOB for a sequence")
     m, params = resolve(args.method, args.weights)
     repair = "zero" if args.repair else None
     inp = Path(args.input)
     buffers, attrs = read_buffers(inp, repair=repair)
-    if args.frames:
-        frames, paths = read_sequence(args.frames, repair=repair)
-        resolved = [p.resolve() for p in paths]
-        if inp.resolve() not in resolved:
-            raise SystemExit(f"error: {inp} is not among the frames matched by --frames '{args.frames}'")
-        index = resolved.index(inp.resolve())
-        if m.recurrent:
-            state = m.module.init_state(prepare(m, frames[0]), m.config)
-            for frame in frames[: index + 1]:
-                state, image = m.module.step(params, state, prepare(m, frame), m.config)
-        elif hasattr(m.module, "apply_sequence"):
-            seq = stack([prepare(m, f) for f in frames])
-            image = m.module.apply_sequence(params, seq, m.config)[index]
-        else:
-            raise SystemExit(f"error: method '{m.name}' does not use neighbouring frames; drop --frames")
-    else:
-        image = inference_fn(m)(params, prepare(m, buffers))
+    image = inference_fn(m)(params, prepare(m, buffers, where=str(inp)))
     out = write_image(args.output, np.asarray(image), {"jaxdenoise:method": m.name,
                                                        "jaxdenoise:input": str(inp)})
     cfg_path = out.with_name(out.stem + ".config.json")
     write_json(cfg_path, {"method": m.name, "config": dataclasses.asdict(m.config), "input": str(inp),
-                          "weights": args.weights, "frames": args.frames, "repair": repair,
+                          "weights": args.weights, "repair": repair,
                           "input_attrs": {k: v for k, v in attrs.items() if isinstance(v, (int, float, str))}})
     print(f"denoise: {inp.name} -> {out} with {m.name} ({buffers.shape[1]}x{buffers.shape[0]}) "
           f"in {time.perf_counter() - t0:.2f} s; config {cfg_path.name}")
+    return 0
+
+
+def frame_output_names(paths: list[Path]) -> list[str]:
+    """Output file names for a sequence's frames: the frame's file name when those are unique, else
+    its path below the frames' common folder with ``/`` as ``_`` (``frame_0003/spp0001_00.exr`` ->
+    ``frame_0003_spp0001_00.exr``)."""
+    import os
+
+    if len({p.name for p in paths}) == len(paths):
+        return [p.name for p in paths]
+    common = Path(os.path.commonpath([str(p.resolve().parent) for p in paths]))
+    return [str(p.resolve().relative_to(common)).replace(os.sep, "_") for p in paths]
+
+
+def _denoise_frames(args: argparse.Namespace, t0: float) -> int:
+    """``denoise --frames GLOB -o OUT_DIR``: every frame through the sequence driver, each written."""
+    import dataclasses
+
+    from .api import resolve
+    from .fsutil import write_json
+    from .io import read_sequence, write_image
+    from .sequence import run
+
+    m, params = resolve(args.method, args.weights)
+    repair = "zero" if args.repair else None
+    frames, paths = read_sequence(args.frames, repair=repair)
+    if args.input is not None and Path(args.input).resolve() not in [p.resolve() for p in paths]:
+        raise SystemExit(f"error: {args.input} is not among the frames matched by --frames '{args.frames}'")
+    out_dir = Path(args.output)
+    if out_dir.suffix.lower() == ".exr" or out_dir.is_file():
+        raise SystemExit(f"error: with --frames, -o/--output is a folder for every denoised frame; got {out_dir}")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    names = frame_output_names(paths)
+    written = []
+    for path, name, image in zip(paths, names, run(m, params, frames, names=[str(p) for p in paths])):
+        written.append(str(write_image(out_dir / name, image, {"jaxdenoise:method": m.name,
+                                                               "jaxdenoise:input": str(path)})))
+    write_json(out_dir / "denoise.config.json", {
+        "method": m.name, "kind": m.temporal, "config": dataclasses.asdict(m.config), "frames": args.frames,
+        "inputs": [str(p) for p in paths], "outputs": [Path(w).name for w in written],
+        "weights": args.weights, "repair": repair})
+    print(f"denoise: {len(written)} frame(s) of '{args.frames}' -> {out_dir} with {m.name} ({m.temporal}) "
+          f"in {time.perf_counter() - t0:.2f} s; config denoise.config.json")
     return 0
 
 
@@ -119,12 +150,13 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("methods", help="list registered methods, what they need, and whether they run here")
     s.set_defaults(func=_cmd_methods)
 
-    s = sub.add_parser("denoise", help="denoise one EXR frame")
-    s.add_argument("input", help="noisy multi-channel EXR (R G B plus optional buffers)")
-    s.add_argument("-o", "--output", required=True, help="output EXR")
+    s = sub.add_parser("denoise", help="denoise one EXR frame, or every frame of a sequence (--frames)")
+    s.add_argument("input", nargs="?", help="noisy multi-channel EXR (R G B plus optional buffers)")
+    s.add_argument("-o", "--output", required=True, help="output EXR (with --frames: output folder)")
     s.add_argument("--method", default="gaussian")
     s.add_argument("--weights", help="folder with params.npz + config.json (default: shipped weights)")
-    s.add_argument("--frames", help="glob of the whole sequence, for temporal methods")
+    s.add_argument("--frames", help="glob of a sequence's frames (sorted by path = time order); every "
+                                    "frame is denoised through the sequence driver and written into -o")
     s.add_argument("--repair", action="store_true", help="replace NaN/Inf and clamp negative radiance (see docs)")
     s.set_defaults(func=_cmd_denoise)
 

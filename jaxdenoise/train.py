@@ -153,11 +153,11 @@ def _step_fn(method_name: str, config: Any, optimizer: str, learning_rate: float
 
 
 def load_validation(method: Any, data_dir: str | Path, spps: Any = None) -> list[dict]:
-    """The validation frames of ``data_dir``: for every shot (`bench.discover`) and sampling rate
+    """The validation frames of ``data_dir``: for every shot (`data.discover`) and sampling rate
     (all rates, or those in ``spps``), its first render in name order, read with the buffers
     ``method`` uses. Returns ``[{"file", "spp", "buffers", "reference"}]``."""
     from .api import prepare
-    from .bench import discover
+    from .data import discover
     from .io import read_buffers, read_image
 
     wanted = None if spps is None else {int(s) for s in spps}
@@ -227,7 +227,7 @@ def train(method_name: str, data_dir: str | Path, out_dir: str | Path, *, resume
     """
     method = get(method_name, config)
     module = method.module
-    if not method.trainable or not hasattr(module, "make_dataset") or not hasattr(module, "batch"):
+    if not method.trainable:
         raise MethodError(f"method '{method_name}' cannot be trained here: its module needs loss, "
                           "make_dataset and batch (see jaxdenoise.train)")
     base = dataclasses.asdict(train_config) if train_config is not None else dict(getattr(module, "TRAIN", {}))

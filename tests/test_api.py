@@ -34,9 +34,10 @@ def test_input_is_identity_and_gaussian_smooths():
 
 def test_prepare_feeds_only_what_method_reads():
     b = synthetic_frame()
-    assert prepare(get("gaussian"), b).present() == {"color"}
-    assert prepare(get("oidn"), b).present() == {"color", "albedo", "normal"}
-    assert prepare(get("oidn"), b.only(())).present() == {"color"}  # OIDN runs on colour alone
+    # the frame's metadata (spp) always travels with it (DESIGN.md "Methods")
+    assert prepare(get("gaussian"), b).present() == {"color", "spp"}
+    assert prepare(get("oidn"), b).present() == {"color", "albedo", "normal", "spp"}
+    assert prepare(get("oidn"), b.only(())).present() == {"color", "spp"}  # OIDN runs on colour alone
 
 
 def test_unknown_method_and_nonfinite_input():

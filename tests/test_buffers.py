@@ -49,7 +49,8 @@ def test_batched_and_stack():
 def test_only_keeps_color_and_named():
     b = synthetic_frame()
     o = b.only({"albedo"})
-    assert o.present() == {"color", "albedo"}
+    assert o.present() == {"color", "albedo", "spp"}  # metadata is never dropped
+    assert o.spp == b.spp
 
 
 def test_channel_table_is_consistent():

@@ -172,28 +172,56 @@ def test_saved_and_reloaded_model_gives_the_same_image(tmp_path):
     np.testing.assert_array_equal(a, c)  # bit-identical
 
 
-def test_sequence_uses_spatiotemporal_filter_and_reduces_to_frames():
-    """(T, H, W, C) input: with temporal_radius=0 the result equals per-frame apply (1e-6); with the
-    7-frame window (Sec. 5) a static sequence with independent noise is closer to its mean."""
+def _static_noisy_frames(n: int = 3) -> list:
+    frames = [synthetic_frame(5, 4, seed=0, spp=4) for _ in range(n)]
+    rng = np.random.default_rng(0)
+    return [f.replace(color=np.asarray(frames[0].color) + 0.1 * rng.normal(size=(5, 4, 3)).astype(np.float32))
+            for f in frames]
+
+
+def test_leading_axis_is_a_batch_of_independent_frames():
+    """(B, H, W, C) input = B frames filtered on their own (tolerance 1e-6: the same arithmetic in a
+    lax.map body), never blended as a video; a scalar spp applies to every frame."""
     cfg = dataclasses.replace(SMALL, radius=1, features=("normal",))
     params = lbf.init(jax.random.PRNGKey(6), cfg)
-    frames = [synthetic_frame(5, 4, seed=0, spp=4) for _ in range(3)]
-    rng = np.random.default_rng(0)
-    frames = [f.replace(color=np.asarray(frames[0].color) + 0.1 * rng.normal(size=(5, 4, 3)).astype(np.float32))
-              for f in frames]
-    seq = Buffers(**{k: np.stack([np.asarray(getattr(f, k)) for f in frames]) for k in frames[0].to_dict() if k != "spp"},
-                  spp=np.float32(4))
+    frames = _static_noisy_frames()
     per_frame = np.stack([np.asarray(lbf.apply(params, f, cfg)) for f in frames])
-    seq0 = np.asarray(lbf.apply(params, seq, dataclasses.replace(cfg, temporal_radius=0)))
-    np.testing.assert_allclose(seq0, per_frame, atol=1e-6)
-    seq3 = np.asarray(lbf.apply(params, seq, cfg))
-    assert seq3.shape == (3, 5, 4, 3) and np.all(np.isfinite(seq3))  # exact shape
-    assert not np.allclose(seq3, seq0, atol=1e-4)  # the neighbour frames take part
+    batch = Buffers(**{k: np.stack([np.asarray(getattr(f, k)) for f in frames]) for k in frames[0].to_dict()
+                       if k != "spp"}, spp=np.float32(4))
+    np.testing.assert_allclose(np.asarray(lbf.apply(params, batch, cfg)), per_frame, atol=1e-6)
+    per_spp = batch.replace(spp=np.full((3,), 4, np.float32))
+    np.testing.assert_allclose(np.asarray(lbf.apply(params, per_spp, cfg)), per_frame, atol=1e-6)
+
+
+def test_sequence_driver_uses_the_spatiotemporal_window():
+    """Through the sequence driver: with temporal_radius=0 the result equals per-frame apply (1e-6);
+    with the window (Sec. 5) frame t equals `apply_window` over frames max(0, t-r)..min(T-1, t+r)
+    computed by hand (1e-6), and the neighbours change the result."""
+    from jaxdenoise.methods import Method
+    from jaxdenoise.sequence import run_all
+
+    cfg = dataclasses.replace(SMALL, radius=1, features=("normal",), temporal_radius=1)
+    params = lbf.init(jax.random.PRNGKey(6), cfg)
+    frames = _static_noisy_frames(4)
+    m = Method("lbf", lbf, cfg)
+    assert m.temporal == "windowed" and lbf.window(cfg) == (1, 1)
+    per_frame = np.stack([np.asarray(lbf.apply(params, f, cfg)) for f in frames])
+    m0 = Method("lbf", lbf, dataclasses.replace(cfg, temporal_radius=0))
+    assert m0.temporal == "frame"
+    np.testing.assert_allclose(run_all(m0, params, frames), per_frame, atol=1e-6)
+    seq = run_all(m, params, frames)
+    assert seq.shape == (4, 5, 4, 3) and np.all(np.isfinite(seq))  # exact shape
+    preps = [lbf.prepare_frame(params, f, cfg) for f in frames]
+    for t in range(4):
+        lo, hi = max(0, t - 1), min(3, t + 1)
+        want = np.asarray(lbf.apply_window(params, tuple(preps[lo:hi + 1]), t - lo, cfg))
+        np.testing.assert_allclose(seq[t], want, atol=1e-6)
+    assert not np.allclose(seq, per_frame, atol=1e-4)  # the neighbour frames take part
 
 
 def test_needs_leaves_out_unused_features_and_registry():
     cfg = lbf.Config(features=("normal", "albedo"))
-    assert lbf.needs(cfg) == {"color", "color_var", "normal", "normal_var", "albedo", "albedo_var"}  # exact
+    assert lbf.needs(cfg) == {"color", "color_var", "normal", "normal_var", "albedo", "albedo_var", "spp"}  # exact
     assert "depth" not in lbf.needs(lbf.Config()) and "visibility" in lbf.needs(lbf.Config())
     assert get("lbf").config.filter == "bilateral" and get("lbf-nlm").config.filter == "nlm"
     p = lbf.init(jax.random.PRNGKey(0), cfg)

@@ -36,7 +36,8 @@ from typing import Any, Sequence
 import jax
 import jax.numpy as jnp
 
-from ._common import FilterError, as_image, as_param, check_radius, compute_dtype
+from ..arrays import compute_dtype
+from ._common import FilterError, as_image, as_param, check_radius
 from ._window import Neighbours, channel_sum, channel_sum_sq, clamp_dist, from_planar, to_planar, window_sums
 from .bilateral import DELTA, ZETA, _color_var, _feature_inputs, _var_map
 
@@ -149,3 +150,23 @@ def prefilter_features(feature, feature_var, *, radius: int = 5, patch_radius: i
                          radius=radius, patch_radius=patch_radius, cancel=True)
     out = from_planar(num / den)  # den >= 1: the centre weight is exactly 1
     return out[..., :-1].astype(out_dtype), out[..., -1:].astype(out_dtype)
+
+
+def prefilter_guides(features: dict, variances: dict, *, prefilter: bool = True, radius: int = 5,
+                     patch_radius: int = 3) -> tuple[dict, dict]:
+    """The feature prefilter pipeline of Kalantari 2015 Sec. 3.2 for a set of named features (the
+    one shared by ``lbf`` and ``bilateral``/``nlm``): ``{name: feature}`` / ``{name: variance}`` ->
+    the same dicts with every feature and its variance NL-means prefiltered (`prefilter_features`,
+    11x11 window, 7x7 patches by default). A feature that is ``None`` (absent from the frame) is
+    left out of both results; one without a variance, or every one when ``prefilter`` is False, is
+    passed through unfiltered."""
+    guides, gvars = {}, {}
+    for name, f in features.items():
+        if f is None:
+            continue
+        v = variances.get(name)
+        if prefilter and v is not None:
+            f, v = prefilter_features(f, v, radius=radius, patch_radius=patch_radius)
+        guides[name], gvars[name] = f, v
+    return guides, gvars
+

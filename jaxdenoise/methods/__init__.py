@@ -1,20 +1,11 @@
 """The method registry (DESIGN.md "Methods").
 
-Every method lives in ``jaxdenoise/methods/<module>.py`` and exposes:
-
-- ``Config``: frozen dataclass of hyperparameters (paper defaults, cited);
-- ``needs(config) -> frozenset[str]``: the `Buffers` fields it reads (``color`` included), i.e.
-  what a renderer should produce for it;
-- optionally ``required(config) -> frozenset[str]``: the subset it cannot run without (default: all
-  of ``needs``); the others are used when the frame has them and left out otherwise;
-- ``init(key, config) -> params`` (a plain pytree; ``{}`` for methods without parameters);
-- ``apply(params, buffers, config) -> image`` (pure and jittable unless ``JITTABLE = False``);
-- ``loss(params, batch, config) -> scalar`` when trainable;
-- recurrent ones add ``init_state(buffers, config)`` and ``step(params, state, buffers, config)``.
-
-Optional module attributes: ``JITTABLE`` (default True; False for foreign code such as OIDN),
-``requirements() -> str | None`` (a reason the method cannot run here, e.g. a missing package),
-``WEIGHTS`` (name of the shipped weights folder under ``jaxdenoise/weights/``).
+Every method lives in ``jaxdenoise/methods/<module>.py`` and exposes the surface stated once in
+`jaxdenoise.methods.protocol` (required: ``Config``, ``needs``, ``init``, ``apply``; optional hook
+groups: causal ``init_state``/``step``, windowed ``window``/``prepare_frame``/``apply_window``,
+trainable ``loss``/``make_dataset``/``batch``; optional attributes ``required``, ``JITTABLE``,
+``requirements``, ``WEIGHTS``, ``TRAIN``, ``FROZEN``). `Method` answers "is it trainable /
+temporal?" from those protocols, and a test checks every registered module against them.
 
 A registered name maps to a module plus config overrides, so one module serves variants
 (``lbf`` / ``lbf-nlm``, ``poisson-l2`` / ``poisson-l1``).
@@ -26,6 +17,8 @@ import importlib
 from pathlib import Path
 from types import ModuleType
 from typing import Any, Callable
+
+from .protocol import Causal, Trainable, Windowed
 
 # name -> (module, config overrides). Order is the order of tables and plots.
 _REGISTRY: dict[str, tuple[str, dict[str, Any]]] = {
@@ -61,11 +54,21 @@ class Method:
 
     @property
     def trainable(self) -> bool:
-        return hasattr(self.module, "loss")
+        return isinstance(self.module, Trainable)
 
     @property
     def recurrent(self) -> bool:
-        return hasattr(self.module, "step")
+        return isinstance(self.module, Causal)
+
+    @property
+    def temporal(self) -> str:
+        """How the sequence driver runs it: ``"causal"`` (state carried frame to frame),
+        ``"windowed"`` (frame t reads t - back .. t + ahead) or ``"frame"`` (frame by frame)."""
+        if self.recurrent:
+            return "causal"
+        if isinstance(self.module, Windowed) and tuple(self.module.window(self.config)) != (0, 0):
+            return "windowed"
+        return "frame"
 
     def needs(self) -> frozenset[str]:
         return frozenset(self.module.needs(self.config)) | {"color"}

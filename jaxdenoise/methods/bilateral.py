@@ -22,15 +22,12 @@ import dataclasses
 import math
 
 import jax
-import jax.numpy as jnp
-import numpy as np
 
-from ..buffers import Buffers, BuffersError, with_variances
-from ..filters import cross_bilateral, cross_nlm, prefilter_features, remove_spikes
+from ..buffers import Buffers, BuffersError, map_frames, with_variances
+from .lbf_features import PAPER_FEATURES
+from ..filters import cross_bilateral, cross_nlm, remove_spikes
+from ..filters.nlm import prefilter_guides
 
-# The paper's K = 5 additional features (Sec. 3.2): world position, shading normal, texture at
-# the first and second hit, direct-light visibility.
-PAPER_FEATURES = ("position", "normal", "albedo", "albedo2", "visibility")
 
 
 # gamma_k found by experiments/tune_filters.py on training frames (docs/results/tune_<filter>.md).
@@ -92,17 +89,11 @@ def init(key, config: Config) -> dict:
 def prepare(arrays: dict, config: Config) -> dict:
     """The bandwidth-independent part for one (H, W, C) frame: colour, its variance, and the
     (prefiltered) features present in ``arrays`` with their (smoothed) variances."""
-    feats, fvars = [], []
-    for name in config.features:
-        f = arrays.get(name)
-        if f is None:
-            continue  # the frame lacks this optional feature: its term is left out
-        v = arrays.get(f"{name}_var")
-        if config.prefilter and v is not None:
-            f, v = prefilter_features(f, v, radius=5, patch_radius=3)  # Sec. 3.2: 11x11 window, 7x7 patch
-        feats.append(f)
-        fvars.append(v)
-    return {"color": arrays["color"], "color_var": arrays["color_var"], "features": feats, "feature_vars": fvars}
+    # Sec. 3.2 (11x11 window, 7x7 patch); a feature the frame lacks is left out (its term is 0)
+    guides, gvars = prefilter_guides({n: arrays.get(n) for n in config.features},
+                                     {n: arrays.get(f"{n}_var") for n in config.features}, prefilter=config.prefilter)
+    return {"color": arrays["color"], "color_var": arrays["color_var"], "features": list(guides.values()),
+            "feature_vars": list(gvars.values())}
 
 
 def filter_prepared(prep: dict, lam_spatial, lam_color, lam_patch, lam_features, config: Config) -> jax.Array:
@@ -148,16 +139,10 @@ def _frame(arrays: dict, config: Config) -> jax.Array:
 
 
 def apply(params: dict, buffers: Buffers, config: Config) -> jax.Array:
-    """Denoise a frame ``(H, W, 3)`` or a batch / sequence ``(..., H, W, 3)`` frame by frame."""
+    """Denoise a frame ``(H, W, 3)`` or a batch ``(..., H, W, 3)`` of independent frames, one at a time."""
     _check_config(config)
     if not isinstance(buffers, Buffers):
         raise BuffersError(f"bilateral: 'buffers' must be a jaxdenoise.Buffers, got {type(buffers).__name__}")
     buffers.check_needs(required(config), config.filter)
-    arrays = {k: v for k, v in buffers.to_dict().items() if k in needs(config)}
-    lead = tuple(np.shape(buffers.color)[:-3])
-    if not lead:
-        return _frame(arrays, config)
-    n = int(np.prod(lead))
-    flat = {k: jnp.reshape(v, (n,) + tuple(np.shape(v)[len(lead):])) for k, v in arrays.items()}
-    out = jax.lax.map(lambda a: _frame(a, config), flat)
-    return out.reshape(lead + out.shape[1:])
+    keep = needs(config)
+    return map_frames(lambda b: _frame({k: v for k, v in b.to_dict().items() if k in keep}, config), buffers)

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from ..buffers import Buffers
+from ..buffers import Buffers, map_frames
 from ..filters import gaussian as gaussian_filter
 
 
@@ -26,4 +26,5 @@ def init(key, config: Config) -> dict:
 
 
 def apply(params: dict, buffers: Buffers, config: Config):
-    return gaussian_filter(buffers.color, config.sigma, radius=config.radius)
+    """Blur one frame, or each frame of a batch (leading axes) on its own."""
+    return map_frames(lambda b: gaussian_filter(b.color, config.sigma, radius=config.radius), buffers)

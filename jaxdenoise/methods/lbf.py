@@ -16,10 +16,17 @@ Pipeline per frame (Fig. 4):
    beta = 7, Sec. 4.2) or cross-NLM (Eq. 16-17; patch lambda + K feature lambdas), 55x55 window;
 5. remove spikes in the filtered result (Sec. 4.3; not used in training, as in the paper).
 
-Sequences (a leading time axis on every buffer) use the 7-frame spatio-temporal cross-bilateral
-filter of Sec. 5 with the same network, without retraining (each frame's parameters come from its
-own features). ``lbf-nlm`` filters sequences frame by frame (the paper's spatio-temporal extension
-is for the cross-bilateral filter only).
+A leading axis on `apply`'s input is a batch of independent frames. Sequences go through the
+sequence driver (`jaxdenoise.sequence`, `jaxdenoise.denoise_sequence`) as a *windowed* method: the
+7-frame spatio-temporal cross-bilateral filter of Sec. 5 with the same network, without retraining
+(each frame's parameters come from its own features, `prepare_frame`), frame t emitted once frame
+t+3 has arrived, the window clipped at the ends of the sequence (`window`, `apply_window`).
+``lbf-nlm`` filters sequences frame by frame (the paper's spatio-temporal extension is for the
+cross-bilateral filter only).
+
+The frame's ``spp`` is part of what the method reads (`needs`): the inverse sample count is a
+secondary feature and the per-sample standard deviations scale with it; a frame without it is
+refused.
 
 Training (Sec. 3.1, 4.2): the loss of Eq. 8, ``n/2 sum_q (c_hat - c)^2 / (c^2 + eps)`` averaged
 over pixels, back-propagated through the filter with ``jax.grad``; mini-batches hold one crop per
@@ -31,8 +38,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import os
-import re
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -41,15 +46,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import nn
-from ..buffers import Buffers, BuffersError, with_variances
-from ..filters import cross_bilateral, cross_nlm, prefilter_features, remove_spikes, spatiotemporal_cross_bilateral
-from .lbf_features import CATEGORIES, feature_categories, num_features, secondary_features
+from ..buffers import Buffers, BuffersError, map_frames, with_variances
+from ..filters import cross_bilateral, cross_nlm, remove_spikes, spatiotemporal_cross_bilateral
+from ..filters.nlm import prefilter_guides
+from .lbf_features import CATEGORIES, PAPER_FEATURES, feature_categories, num_features, secondary_features
 
-__all__ = ["Config", "needs", "init", "apply", "loss", "prepare", "filter_params", "filter_with",
+__all__ = ["Config", "needs", "window", "init", "apply", "prepare_frame", "apply_window", "postprocess", "loss",
+           "prepare", "filter_params", "filter_with",
            "make_dataset", "batch", "init_from_data", "WEIGHTS", "TRAIN", "FROZEN"]
 
-# The K = 5 additional features of Sec. 3.2, as `Buffers` fields.
-PAPER_FEATURES: tuple[str, ...] = ("position", "normal", "albedo", "albedo2", "visibility")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -100,8 +105,18 @@ def _check_config(config: Config) -> None:
 
 
 def needs(config: Config) -> frozenset[str]:
-    """Colour, its variance, and each configured feature with its variance (nothing else)."""
-    return with_variances({"color", *config.features})
+    """Colour, its variance, each configured feature with its variance, and the frame's ``spp``
+    (the inverse sample count is a secondary feature and scales the per-sample standard
+    deviations, Sec. 3.3): a frame without it is refused, never given a default."""
+    return with_variances({"color", *config.features}) | {"spp"}
+
+
+def window(config: Config) -> tuple[int, int]:
+    """Frames before and after t that frame t's filter reads on a sequence (Sec. 5: 3 each side);
+    ``lbf-nlm`` and ``temporal_radius = 0`` run frame by frame (``(0, 0)``)."""
+    if config.filter == "nlm" or config.temporal_radius == 0:
+        return (0, 0)
+    return (config.temporal_radius, config.temporal_radius)
 
 
 # -- network -----------------------------------------------------------------------------------
@@ -148,15 +163,16 @@ def prepare(buffers: Buffers, config: Config) -> dict:
     """Everything that does not depend on the params, for one (H, W) frame: the prefiltered
     features and smoothed variances (Sec. 3.2), the secondary features (Sec. 3.3), the colour."""
     _check_config(config)
-    guides, gvars = {}, {}
-    for name in config.features:
-        f = getattr(buffers, name)
-        v = getattr(buffers, f"{name}_var")
-        if config.prefilter:
-            f, v = prefilter_features(f, v, radius=config.prefilter_radius, patch_radius=config.prefilter_patch)
-        guides[name], gvars[name] = jnp.asarray(f, jnp.float32), jnp.asarray(v, jnp.float32)
-    spp = 1.0 if buffers.spp is None else buffers.spp
-    x = secondary_features(guides, gvars, spp, features=config.features)
+    guides, gvars = prefilter_guides({n: getattr(buffers, n) for n in config.features},
+                                     {n: getattr(buffers, f"{n}_var") for n in config.features},
+                                     prefilter=config.prefilter, radius=config.prefilter_radius,
+                                     patch_radius=config.prefilter_patch)
+    guides = {n: jnp.asarray(guides[n], jnp.float32) for n in config.features}
+    gvars = {n: jnp.asarray(gvars[n], jnp.float32) for n in config.features}
+    if buffers.spp is None:
+        raise BuffersError("lbf: the frame has no 'spp'; the secondary features need its sample count "
+                           "(Sec. 3.3) and it is never guessed")
+    x = secondary_features(guides, gvars, buffers.spp, features=config.features)
     return {"x": x, "color": jnp.asarray(buffers.color, jnp.float32),
             "color_var": jnp.asarray(buffers.color_var, jnp.float32), "guides": guides, "guide_vars": gvars}
 
@@ -174,9 +190,10 @@ def filter_with(lam: jax.Array, prep: dict, config: Config) -> jax.Array:
                            radius=config.radius)
 
 
-def _remove_spikes(img: jax.Array) -> jax.Array:
-    """Sec. 4.3: 3x3 block, 2 standard deviations, replaced by the block median."""
-    return remove_spikes(img, n_std=2.0, block_radius=1)
+def postprocess(img: jax.Array, config: Config) -> jax.Array:
+    """Spike removal of the filtered image (Sec. 4.3: 3x3 block, 2 standard deviations, replaced by
+    the block median) when ``config.spike_removal``; not used in training, as in the paper."""
+    return remove_spikes(img, n_std=2.0, block_radius=1) if config.spike_removal else img
 
 
 def _check_buffers(buffers: Buffers, config: Config) -> None:
@@ -185,49 +202,46 @@ def _check_buffers(buffers: Buffers, config: Config) -> None:
     buffers.check_needs(needs(config), "lbf-nlm" if config.filter == "nlm" else "lbf")
 
 
+def _apply_frame(params: dict, buffers: Buffers, config: Config) -> jax.Array:
+    prep = prepare(buffers, config)
+    return postprocess(filter_with(filter_params(params, prep["x"], config), prep, config), config)
+
+
 def apply(params: dict, buffers: Buffers, config: Config) -> jax.Array:
-    """Denoise one frame ``(H, W, 3)`` or a sequence ``(T, H, W, 3)`` (module docstring)."""
+    """Denoise one frame ``(H, W, 3)``, or a batch ``(B, H, W, 3)`` of independent frames (one at a
+    time). Sequences go through `jaxdenoise.sequence` (`window`, `prepare_frame`, `apply_window`)."""
     _check_config(config)
     _check_buffers(buffers, config)
-    ndim = np.ndim(buffers.color)
-    if ndim == 3:
-        prep = prepare(buffers, config)
-        out = filter_with(filter_params(params, prep["x"], config), prep, config)
-        return _remove_spikes(out) if config.spike_removal else out
-    if ndim != 4:
-        raise BuffersError(f"lbf: 'buffers.color' has shape {np.shape(buffers.color)}; expected (H, W, 3) or (T, H, W, 3)")
-    return _apply_sequence(params, buffers, config)
+    if np.ndim(buffers.color) < 3:
+        raise BuffersError(f"lbf: 'buffers.color' has shape {np.shape(buffers.color)}; expected (..., H, W, 3)")
+    return map_frames(lambda b: _apply_frame(params, b, config), buffers)
 
 
-def _frame(buffers: Buffers, t: int) -> Buffers:
-    spp = buffers.spp
-    if spp is not None and np.ndim(spp) > 0:
-        spp = spp[t]
-    return Buffers(**{**{k: v[t] for k, v in buffers.to_dict().items() if k != "spp"}, "spp": spp})
+def prepare_frame(params: dict, buffers: Buffers, config: Config) -> dict:
+    """Per-frame work of the spatio-temporal filter (Sec. 5): `prepare` and the frame's own lambdas
+    (each frame's parameters come from its own features; the network is not retrained)."""
+    _check_config(config)
+    _check_buffers(buffers, config)
+    prep = prepare(buffers, config)
+    return {"guides": prep["guides"], "guide_vars": prep["guide_vars"], "color": prep["color"],
+            "color_var": prep["color_var"], "lam": filter_params(params, prep["x"], config)}
 
 
-def _apply_sequence(params: dict, buffers: Buffers, config: Config) -> jax.Array:
-    """Sec. 5: each frame filtered over frames t-3..t+3 (clipped at the ends) with its own lambdas."""
-    t_len = np.shape(buffers.color)[0]
-    preps = [prepare(_frame(buffers, t), config) for t in range(t_len)]
-    lams = [filter_params(params, p["x"], config) for p in preps]
-    outs = []
-    for t in range(t_len):
-        if config.filter == "nlm" or config.temporal_radius == 0:
-            out = filter_with(lams[t], preps[t], config)
-        else:
-            lo, hi = max(0, t - config.temporal_radius), min(t_len, t + config.temporal_radius + 1)
-            win = preps[lo:hi]
-            stack = lambda get: jnp.stack([get(p) for p in win])
-            feats = [stack(lambda p, f=f: p["guides"][f]) for f in config.features]
-            fvars = [stack(lambda p, f=f: p["guide_vars"][f]) for f in config.features]
-            lam = lams[t]
-            out = spatiotemporal_cross_bilateral(
-                stack(lambda p: p["color"]), stack(lambda p: p["color_var"]), feats, fvars, lam[..., 0],
-                1.0 / (2.0 * config.beta ** 2), [lam[..., 1 + k] for k in range(len(config.features))],
-                radius=config.radius, lam_temporal=config.lam_temporal, center=t - lo)
-        outs.append(_remove_spikes(out) if config.spike_removal else out)
-    return jnp.stack(outs)
+def apply_window(params: dict, prepared: tuple, center: int, config: Config) -> jax.Array:
+    """Sec. 5: frame ``prepared[center]`` filtered over the frames of its window (t-3..t+3, clipped
+    at the ends of the sequence) with its own lambdas, then spike removal."""
+    if window(config) == (0, 0):
+        prep = prepared[center]
+        return postprocess(filter_with(prep["lam"], prep, config), config)
+    stack = lambda get: jnp.stack([get(p) for p in prepared])
+    feats = [stack(lambda p, f=f: p["guides"][f]) for f in config.features]
+    fvars = [stack(lambda p, f=f: p["guide_vars"][f]) for f in config.features]
+    lam = prepared[center]["lam"]
+    out = spatiotemporal_cross_bilateral(
+        stack(lambda p: p["color"]), stack(lambda p: p["color_var"]), feats, fvars, lam[..., 0],
+        1.0 / (2.0 * config.beta ** 2), [lam[..., 1 + k] for k in range(len(config.features))],
+        radius=config.radius, lam_temporal=config.lam_temporal, center=center)
+    return postprocess(out, config)
 
 
 # -- training ----------------------------------------------------------------------------------
@@ -255,25 +269,19 @@ def _prepare_jit(config: Config):
     return jax.jit(lambda b: prepare(b, config))
 
 
-_NOISY = re.compile(r"^spp(\d{4})_(\d{2})\.exr$")
-
-
 def _scan(data_dir: Path, spps: Sequence[int]) -> list[tuple[Path, dict[int, list[Path]]]]:
-    """Scene folders under ``data_dir`` holding ``reference.exr`` and ``spp{spp:04d}_{i:02d}.exr``."""
+    """Shots under ``data_dir`` (`jaxdenoise.data.discover`) with at least one render at every rate
+    in ``spps`` (header ``spp``; renders in name order): ``[(shot folder, {spp: [paths]})]``."""
+    from ..data import discover, renders_by_spp
+
     scenes = []
-    refs = sorted(Path(root) / "reference.exr" for root, _, files in os.walk(data_dir, followlinks=True)
-                  if "reference.exr" in files)  # walk: linked scene folders count too
-    for ref in refs:
-        renders: dict[int, list[Path]] = {s: [] for s in spps}
-        for p in sorted(ref.parent.iterdir()):
-            m = _NOISY.match(p.name)
-            if m and int(m.group(1)) in renders:
-                renders[int(m.group(1))].append(p)
-        if all(renders.values()):
-            scenes.append((ref.parent, renders))
+    for shot in discover(data_dir):
+        by_spp = renders_by_spp(shot, set(spps))
+        if all(by_spp.get(s) for s in spps):
+            scenes.append((shot.folder, {s: [r.path for r in by_spp[s]] for s in spps}))
     if not scenes:
-        raise FileNotFoundError(f"{data_dir}: no scene folder with reference.exr and spp{{spp:04d}}_{{i:02d}}.exr "
-                                f"renders at every spp in {tuple(spps)}")
+        raise FileNotFoundError(f"{data_dir}: no shot (folder with reference.exr) has renders at every spp "
+                                f"in {tuple(spps)} (header attribute 'spp')")
     return scenes
 
 
@@ -301,10 +309,8 @@ def make_dataset(data_dir, config: Config, *, max_instances: int | None = None, 
         if "reference" not in entry:
             entry["reference"] = np.asarray(read_image(scene_dir / "reference.exr"), np.float32)[..., :3]
         buf, attrs = read_buffers(path)
-        buf.check_needs(keep, "lbf")
+        buf.check_needs(keep, "lbf", where=str(path))
         buf = buf.only(keep)
-        if buf.spp is None:
-            buf = buf.replace(spp=np.float32(spp))
         prep = jax.tree_util.tree_map(lambda a: np.asarray(a, np.float32), prep_jit(buf))
         prep["spp"] = np.float32(spp)
         entry["renders"].setdefault(spp, []).append(prep)

@@ -30,9 +30,15 @@ from typing import Mapping, Sequence
 import jax
 import jax.numpy as jnp
 
-__all__ = ["CATEGORIES", "feature_names", "feature_categories", "secondary_features", "num_features",
+from ..filters._window import edge_blocks, pad_edge
+
+__all__ = ["PAPER_FEATURES", "CATEGORIES", "feature_names", "feature_categories", "secondary_features", "num_features",
            "box_mean", "sobel_magnitude", "mean_deviation", "median_abs_deviation"]
 
+# The paper's K = 5 additional primary features (Sec. 3.2) as `Buffers` fields: world position,
+# shading normal, texture at the first and second hit, direct-light visibility. The default of
+# ``lbf`` and of the ``bilateral`` / ``nlm`` baselines.
+PAPER_FEATURES: tuple[str, ...] = ("position", "normal", "albedo", "albedo2", "visibility")
 # Sec. 3.3 categories in the order the features are stacked (the ablation of Sec. 6 drops one).
 CATEGORIES: tuple[str, ...] = ("statistics", "gradient", "mean_deviation", "mad", "sampling_rate")
 BLOCK_STATS = 7  # 7x7 block for the block mean / std (Sec. 3.3)
@@ -63,27 +69,13 @@ def feature_categories(features: Sequence[str]) -> list[str]:
             + ["sampling_rate"])
 
 
-def _pad_edge(x: jax.Array, r: int) -> jax.Array:
-    """Edge-replicate ``r`` pixels on the two spatial axes of an (..., H, W, C) array."""
-    pad = [(0, 0)] * (x.ndim - 3) + [(r, r), (r, r), (0, 0)]
-    return jnp.pad(x, pad, mode="edge")
-
-
-def _shifts(x: jax.Array, r: int) -> jax.Array:
-    """All (2r+1)^2 shifted copies of x (edge-padded), stacked on a new leading axis."""
-    h, w = x.shape[-3], x.shape[-2]
-    p = _pad_edge(x, r)
-    out = [p[..., dy:dy + h, dx:dx + w, :] for dy in range(2 * r + 1) for dx in range(2 * r + 1)]
-    return jnp.stack(out)
-
-
 def box_mean(x: jax.Array, *, size: int) -> jax.Array:
     """Mean over a size x size block around each pixel (edge-replicated borders), separable."""
     if size % 2 != 1 or size < 1:
         raise ValueError(f"box_mean: size must be a positive odd integer, got {size}")
     r = size // 2
     h, w = x.shape[-3], x.shape[-2]
-    p = _pad_edge(x, r)
+    p = pad_edge(x, r)
     rows = sum(p[..., dy:dy + h, :, :] for dy in range(size)) / size
     return sum(rows[..., :, dx:dx + w, :] for dx in range(size)) / size
 
@@ -97,7 +89,7 @@ def _safe_sqrt(x: jax.Array) -> jax.Array:
 def sobel_magnitude(x: jax.Array) -> jax.Array:
     """Per-channel Sobel gradient magnitude ``sqrt(gx^2 + gy^2)`` (edge-replicated borders)."""
     h, w = x.shape[-3], x.shape[-2]
-    p = _pad_edge(x, 1)
+    p = pad_edge(x, 1)
 
     def s(dy: int, dx: int) -> jax.Array:
         return p[..., 1 + dy:1 + dy + h, 1 + dx:1 + dx + w, :]
@@ -110,14 +102,14 @@ def sobel_magnitude(x: jax.Array) -> jax.Array:
 def mean_deviation(x: jax.Array, *, size: int = BLOCK_DEV) -> jax.Array:
     """Mean over a block of ``|f_j - block mean|`` (Sec. 3.3, after Hachisuka et al. 2008)."""
     r = size // 2
-    sh = _shifts(x, r)
+    sh = edge_blocks(x, r, axis=0)
     return jnp.mean(jnp.abs(sh - jnp.mean(sh, axis=0)), axis=0)
 
 
 def median_abs_deviation(x: jax.Array, *, size: int = BLOCK_DEV) -> jax.Array:
     """Median over a block of ``|f_j - block median|`` (Sec. 3.3, after Kalantari and Sen 2013)."""
     r = size // 2
-    sh = _shifts(x, r)
+    sh = edge_blocks(x, r, axis=0)
     return jnp.median(jnp.abs(sh - jnp.median(sh, axis=0)), axis=0)
 
 

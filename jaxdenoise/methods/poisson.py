@@ -10,9 +10,8 @@ from __future__ import annotations
 
 import dataclasses
 
-import jax
 
-from ..buffers import Buffers
+from ..buffers import Buffers, map_frames
 from ..solvers import poisson as _sp
 
 _SOLVERS = {"l2": ("dct", "cg"), "l1": ("irls", "admm")}  # first = default (docs/methods/poisson.md)
@@ -63,13 +62,7 @@ def _solve(base, dx, dy, config: Config):
 
 
 def apply(params: dict, buffers: Buffers, config: Config):
-    """Reconstruct from ``color`` (the base image) and ``dx``/``dy``; batches/sequences (leading
-    axes) are solved frame by frame."""
+    """Reconstruct from ``color`` (the base image) and ``dx``/``dy``; a batch (leading axes) of
+    independent frames is solved frame by frame."""
     buffers.check_needs(needs(config), "poisson-" + config.norm)
-    base, dx, dy = buffers.color, buffers.dx, buffers.dy
-    lead = base.shape[:-3]
-    if not lead:
-        return _solve(base, dx, dy, config)
-    flat = [a.reshape((-1,) + a.shape[-3:]) for a in (base, dx, dy)]
-    out = jax.lax.map(lambda t: _solve(*t, config), tuple(flat))
-    return out.reshape(base.shape)
+    return map_frames(lambda b: _solve(b.color, b.dx, b.dy, config), buffers)
