@@ -10,8 +10,10 @@ Params are plain pytrees (dicts of arrays, lists for `serial`), so they go strai
 `jaxdenoise.checkpoint.save` / ``load`` and any pure optimizer in `jaxdenoise.solvers`.
 
 Layers here: `Dense` (Kalantari 2015 Eq. 7: ``a = f(W a_prev + w0)``), the activations `Sigmoid`,
-`Softplus` (Kalantari 2015 Sec. 4.1), `Relu`, `Identity`, and the combinator `serial`. Later
-methods add convolutions in sibling modules and re-export them here.
+`Softplus` (Kalantari 2015 Sec. 4.1), `Relu`, `LeakyRelu` (Chaitanya 2017: slope 0.1; Guo 2019:
+0.01), `Identity`, and the combinator `serial`. One module per kind beside it, re-exported here:
+`jaxdenoise.nn.conv` (`Conv`, `ConvTranspose`, their initializers, `pad_to_multiple` / `crop_to`)
+and `jaxdenoise.nn.pool` (`MaxPool`, `AvgPool`, `Upsample`).
 """
 from __future__ import annotations
 
@@ -20,8 +22,9 @@ from typing import Any, Callable, Sequence
 import jax
 import jax.numpy as jnp
 
-__all__ = ["Dense", "Sigmoid", "Softplus", "Relu", "Identity", "Elementwise", "serial", "Layer",
-           "uniform_init", "glorot_uniform_init"]
+__all__ = ["Dense", "Sigmoid", "Softplus", "Relu", "LeakyRelu", "Identity", "Elementwise", "serial", "Layer",
+           "uniform_init", "glorot_uniform_init", "Conv", "ConvTranspose", "he_normal_init", "bilinear_init",
+           "identity_init", "pad_to_multiple", "crop_to", "MaxPool", "AvgPool", "Upsample"]
 
 Layer = tuple[Callable[..., Any], Callable[..., Any]]
 Initializer = Callable[[jax.Array, tuple[int, ...]], jax.Array]
@@ -39,10 +42,14 @@ def uniform_init(scale: float = 0.5) -> Initializer:
 
 
 def glorot_uniform_init() -> Initializer:
-    """Glorot/Xavier uniform over the last two axes (fan_in, fan_out)."""
+    """Glorot/Xavier uniform, U(-l, l) with l = sqrt(6 / (fan_in + fan_out)); the last two axes are
+    (in, out) and any leading axes a receptive field (a conv kernel HWIO: fan_in = kh kw c_in)."""
 
     def init(key: jax.Array, shape: tuple[int, ...]) -> jax.Array:
-        fan_in, fan_out = shape[-2], shape[-1]
+        rf = 1
+        for n in shape[:-2]:
+            rf *= int(n)
+        fan_in, fan_out = rf * shape[-2], rf * shape[-1]
         limit = (6.0 / (fan_in + fan_out)) ** 0.5
         return jax.random.uniform(key, shape, jnp.float32, -limit, limit)
 
@@ -112,6 +119,13 @@ def Relu() -> Layer:
     return Elementwise(jax.nn.relu)
 
 
+def LeakyRelu(slope: float = 0.01) -> Layer:
+    """``x`` for x >= 0, ``slope * x`` below (Chaitanya 2017 Sec. 4.1: 0.1; Guo 2019 Sec. 4.4: 0.01)."""
+    if not 0.0 <= float(slope) < 1.0:
+        raise ValueError(f"LeakyRelu: slope must be in [0, 1), got {slope}")
+    return Elementwise(lambda x: jax.nn.leaky_relu(x, float(slope)))
+
+
 def Identity() -> Layer:
     return Elementwise(lambda x: x)
 
@@ -149,3 +163,8 @@ def serial(*layers: Layer) -> Layer:
         return x
 
     return init, apply
+
+
+# Sibling modules, one per kind of layer (imported last: they use nothing from this module).
+from .conv import Conv, ConvTranspose, bilinear_init, crop_to, he_normal_init, identity_init, pad_to_multiple  # noqa: E402
+from .pool import AvgPool, MaxPool, Upsample  # noqa: E402
