@@ -11,9 +11,20 @@ Public API::
 """
 from .api import denoise, denoise_sequence, load
 from .buffers import Buffers, BuffersError, stack
-from .io import ExrError, read_buffers, read_image, read_sequence, write_buffers, write_image
 from .methods import MethodError
 from .methods import names as method_names
+
+# EXR I/O needs OpenImageIO; it is imported on first use so that `jaxdenoise` and its training path
+# import on machines without it (a GPU box training from an exported cache).
+_IO_NAMES = ("ExrError", "read_buffers", "read_image", "read_sequence", "write_buffers", "write_image")
+
+
+def __getattr__(name: str):
+    if name in _IO_NAMES:
+        from . import io
+
+        return getattr(io, name)
+    raise AttributeError(f"module 'jaxdenoise' has no attribute {name!r}")
 
 __version__ = "0.1.0"
 

@@ -37,6 +37,16 @@ are kept in the checkpoint's history, so a resumed run continues the same record
 from given weights (``init_from``) scores them first (step 0), so ``best/`` is never worse on the
 validation frames than what the run started from.
 
+Optimization (`TrainConfig`): Adam (moment decays ``adam_b1`` / ``adam_b2``) with a step-size
+schedule in steps (``schedule``: constant, the geometric ramp-up then 1/sqrt(t) of Chaitanya 2017,
+step decay, exponential; `jaxdenoise.solvers.optim.schedule`) or RPROP; optional clipping of the
+gradient's global norm (``clip_norm``). ``loss`` may return ``(scalar, aux)``; ``aux["updates"]``
+replaces FROZEN params entries after each step (running statistics). Data parallel: every batch is
+split over all local devices (`shard_batch`; params replicated, gradients reduced by XLA), so the
+same command uses every GPU (or ``--xla_force_host_platform_device_count`` CPU devices) JAX sees.
+This module imports without OpenImageIO, Mitsuba and jaxopt (EXRs are read only by ``make_dataset``
+and validation).
+
 Non-finite losses or gradients skip the update (counted in the summary); ``max_bad_steps`` of them
 in a row stop the run with an error, since the parameters would not move any more.
 """
@@ -59,7 +69,7 @@ from .fsutil import write_json
 from .methods import MethodError, get
 
 __all__ = ["TrainConfig", "TrainError", "train", "restore_like", "make_optimizer", "summary_line",
-           "load_validation", "validate"]
+           "load_validation", "validate", "shard_batch"]
 
 CHECKPOINT_DIR = "checkpoint"
 WEIGHTS_DIR = "weights"
@@ -77,6 +87,12 @@ class TrainConfig:
     steps: int = 1000
     optimizer: str = "adam"  # "adam" or "rprop" (jaxdenoise.solvers.optim)
     learning_rate: float = 1e-3  # Adam step size; for RPROP the initial step size
+    adam_b1: float = 0.9  # Adam's moment decays (Chaitanya 2017: 0.9 / 0.99; Guo 2019: 0.5 / 0.999)
+    adam_b2: float = 0.999
+    schedule: str = "constant"  # Adam's step size over steps: solvers.optim.schedule (SCHEDULES)
+    schedule_every: int = 1  # the schedule's step count (ramp length, decay interval)
+    schedule_factor: float = 1.0  # the schedule's factor (ramp factor, decay factor)
+    clip_norm: float | None = None  # clip the gradient's global L2 norm to this (None: off)
     checkpoint_every: int = 25
     max_bad_steps: int = 20
     time_limit: float | None = None  # seconds; stop (with a checkpoint) when exceeded
@@ -87,11 +103,23 @@ def make_optimizer(tc: TrainConfig) -> tuple[Callable, Callable]:
     """The pure ``(init, update)`` pair named by ``tc.optimizer``."""
     from .solvers import optim
 
-    if tc.optimizer == "adam":
-        return optim.adam(tc.learning_rate)
-    if tc.optimizer == "rprop":
-        return optim.rprop(step_init=tc.learning_rate)
+    try:
+        if tc.optimizer == "adam":
+            lr = optim.schedule(tc.schedule, tc.learning_rate, every=tc.schedule_every, factor=tc.schedule_factor)
+            return optim.adam(tc.learning_rate if tc.schedule == "constant" else lr, b1=tc.adam_b1, b2=tc.adam_b2)
+        if tc.optimizer == "rprop":
+            if tc.schedule != "constant":
+                raise TrainError(f"schedule '{tc.schedule}' needs optimizer 'adam' (RPROP adapts its own steps)")
+            return optim.rprop(step_init=tc.learning_rate)
+    except ValueError as e:
+        raise TrainError(str(e)) from None
     raise TrainError(f"optimizer '{tc.optimizer}' is unknown; expected 'adam' or 'rprop'")
+
+
+def _optimizer_key(tc: TrainConfig) -> tuple:
+    """The fields of ``tc`` that change the compiled step (a cache key)."""
+    return (tc.optimizer, tc.learning_rate, tc.adam_b1, tc.adam_b2, tc.schedule, tc.schedule_every,
+            tc.schedule_factor, tc.clip_norm)
 
 
 def restore_like(template: Any, loaded: Any, *, where: str = "checkpoint") -> Any:
@@ -127,29 +155,70 @@ def restore_like(template: Any, loaded: Any, *, where: str = "checkpoint") -> An
 
 
 @functools.lru_cache(maxsize=16)
-def _step_fn(method_name: str, config: Any, optimizer: str, learning_rate: float):
-    """The jitted training step, cached so repeated runs with the same settings compile once."""
+def _step_fn(method_name: str, config: Any, opt_key: tuple):
+    """The jitted training step, cached so repeated runs with the same settings compile once.
+
+    ``loss`` may return a scalar or ``(scalar, aux)``; an ``aux`` dict with ``"updates"`` replaces
+    those top-level params entries after the step (they must be ``FROZEN``: e.g. BatchNorm running
+    statistics computed by the forward pass, DESIGN.md "Methods"). The gradient is clipped to
+    ``clip_norm`` (global L2 norm) when set."""
     module = get(method_name, config).module
-    _, opt_update = make_optimizer(TrainConfig(optimizer=optimizer, learning_rate=learning_rate))
+    fields = ("optimizer", "learning_rate", "adam_b1", "adam_b2", "schedule", "schedule_every",
+              "schedule_factor", "clip_norm")
+    tc = TrainConfig(**dict(zip(fields, opt_key)))
+    _, opt_update = make_optimizer(tc)
     frozen = tuple(getattr(module, "FROZEN", ()))
 
     def loss_fn(p, b):
-        return module.loss(p, b, config)
+        out = module.loss(p, b, config)
+        return (out[0], out[1]) if isinstance(out, tuple) else (out, None)
 
     @jax.jit
     def step_fn(p, s, b):
-        value, grads = jax.value_and_grad(loss_fn)(p, b)
+        (value, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(p, b)
+        if tc.clip_norm is not None:
+            from .solvers.optim import clip_by_global_norm
+
+            grads, _ = clip_by_global_norm(grads, tc.clip_norm)
         finite = jnp.isfinite(value)
         for g in jax.tree_util.tree_leaves(grads):
             finite = finite & jnp.all(jnp.isfinite(g))
         new_p, new_s = opt_update(grads, s, p)
         if frozen:
             new_p = {**new_p, **{k: p[k] for k in frozen}}
+        updates = aux.get("updates", {}) if isinstance(aux, dict) else {}
+        bad = sorted(set(updates) - set(frozen))
+        if bad:
+            raise MethodError(f"method '{method_name}': loss aux updates {bad}, which are not FROZEN params")
+        new_p = {**new_p, **updates}
         # A non-finite step keeps the previous params and optimizer state (module docstring).
         keep = lambda a, b_: jnp.where(finite, a, b_)
         return jax.tree_util.tree_map(keep, new_p, p), jax.tree_util.tree_map(keep, new_s, s), value, finite
 
     return step_fn
+
+
+def shard_batch(batch: Any, devices: list | None = None) -> Any:
+    """Data parallelism (DESIGN.md "Methods": the trainer runs over all local devices): every batch
+    leaf whose leading axis divides evenly is split along it over ``devices`` (default: all local
+    ones), the rest is replicated; params and optimizer state stay replicated, and XLA reduces the
+    gradients across devices inside the jitted step. With one device this is a plain transfer.
+    Multi-host: start each process with ``jax.distributed.initialize()`` first (coordinator address,
+    process count and id from the environment or arguments); ``jax.devices()`` then spans every
+    host and the same code runs unchanged (not testable on this machine)."""
+    from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+    devices = list(devices or jax.local_devices())
+    if len(devices) == 1:
+        return jax.device_put(batch, devices[0])
+    mesh = Mesh(np.array(devices), ("data",))
+    split, whole = NamedSharding(mesh, PartitionSpec("data")), NamedSharding(mesh, PartitionSpec())
+
+    def put(x):
+        x = np.asarray(x)
+        return jax.device_put(x, split if x.ndim and x.shape[0] % len(devices) == 0 else whole)
+
+    return jax.tree_util.tree_map(put, batch)
 
 
 def load_validation(method: Any, data_dir: str | Path, spps: Any = None) -> list[dict]:
@@ -286,7 +355,7 @@ def train(method_name: str, data_dir: str | Path, out_dir: str | Path, *, resume
     best = None
     if val_frames is not None and resume and (best_dir / checkpoint.CONFIG_FILE).is_file():
         best = checkpoint.load(best_dir)[1].get("validation")
-    step_fn = _step_fn(method_name, method.config, tc.optimizer, tc.learning_rate)
+    step_fn = _step_fn(method_name, method.config, _optimizer_key(tc))
 
     def save(step: int) -> None:
         checkpoint.save(ckpt_dir, {"params": params, "opt_state": opt_state}, method.config,
@@ -323,7 +392,7 @@ def train(method_name: str, data_dir: str | Path, out_dir: str | Path, *, resume
             run_validation(0)  # the starting weights' score: fine-tuning keeps them unless it beats them
         for step in range(start, tc.steps):
             rng = np.random.default_rng([int(seed), step])
-            b = module.batch(dataset, step, method.config, rng)
+            b = shard_batch(module.batch(dataset, step, method.config, rng))
             params, opt_state, value, ok = step_fn(params, opt_state, b)
             value = float(value)
             if bool(ok):

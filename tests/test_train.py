@@ -155,3 +155,109 @@ def test_fine_tuning_starts_from_the_given_weights_and_scores_them_first(dataset
     with pytest.raises(TrainError, match="trained with config"):
         train("lbf", dataset, tmp_path / "o", steps=1, config=dataclasses.replace(CFG, hidden=(4,)),
               progress=False, init_from=tmp_path / "base" / "weights")
+
+
+# -- schedules, clipping, devices, imports -----------------------------------------------------------
+
+def test_schedules_in_steps():
+    from jaxdenoise.solvers.optim import schedule
+
+    f = schedule("rampup_rsqrt", 1e-3, every=100, factor=10)
+    # hand-computed: 1e-3 * 10 ** (t / 100 - 1) below 100 steps, 1e-3 * sqrt(100 / t) from there
+    for t, want in ((0, 1e-4), (50, 1e-3 * 10 ** -0.5), (100, 1e-3), (400, 5e-4)):
+        assert float(f(t)) == pytest.approx(want, rel=1e-5)
+    g = schedule("step", 1e-4, every=736, factor=0.95)  # Guo 2019: 0.95 every other epoch
+    assert float(g(735)) == pytest.approx(1e-4, rel=1e-6) and float(g(736)) == pytest.approx(0.95e-4, rel=1e-6)
+    assert float(schedule("exponential", 1.0, every=10, factor=0.5)(20)) == pytest.approx(0.25, rel=1e-6)
+    with pytest.raises(ValueError, match="unknown name 'cosine'"):
+        schedule("cosine", 1e-3)
+
+
+def test_clip_by_global_norm():
+    from jaxdenoise.solvers.optim import clip_by_global_norm
+
+    g = {"a": np.array([3.0, 0.0], np.float32), "b": np.array([[4.0]], np.float32)}
+    clipped, norm = clip_by_global_norm(g, 1.0)
+    assert float(norm) == pytest.approx(5.0, rel=1e-6)
+    np.testing.assert_allclose(clipped["a"], [0.6, 0.0], rtol=1e-6)
+    same, _ = clip_by_global_norm(g, 10.0)
+    np.testing.assert_array_equal(same["b"], g["b"])  # under the bound: untouched
+    zero, n0 = clip_by_global_norm({"a": np.zeros(2, np.float32)}, 1.0)
+    assert float(n0) == 0.0 and np.all(np.isfinite(zero["a"]))
+
+
+def test_schedule_reaches_training(dataset, tmp_path):
+    s = train("lbf", dataset, tmp_path / "sched", steps=2, config=CFG, progress=False, optimizer="adam",
+              learning_rate=1e-3, schedule="rampup_rsqrt", schedule_every=4, schedule_factor=10.0, clip_norm=1.0)
+    assert s["steps_done"] == 2 and np.isfinite(s["final_loss"])
+    with pytest.raises(TrainError, match="needs optimizer 'adam'"):
+        train("lbf", dataset, tmp_path / "bad", steps=1, config=CFG, progress=False, optimizer="rprop",
+              schedule="step")
+
+
+_TRAIN_SCRIPT = """
+import json, sys
+sys.path.insert(0, {tests!r})
+import jax
+from jaxdenoise.methods import lbf
+from jaxdenoise.train import train
+from test_train import CFG
+s = train("lbf", {data!r}, {out!r}, steps=3, config=CFG, progress=False, optimizer="adam", learning_rate=1e-2)
+import jaxdenoise.checkpoint as ck
+meta = ck.load({out!r} + "/checkpoint")[1]
+print(json.dumps({{"devices": jax.local_device_count(), "history": meta["history"]}}))
+"""
+
+
+def _run(code: str, env_extra: dict) -> str:
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", **env_extra}
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    return r.stdout.strip().splitlines()[-1]
+
+
+def test_two_devices_give_the_same_loss_trajectory_as_one(dataset, tmp_path):
+    """Data parallel over 2 forced CPU devices: the batch (2 scenes x 2 spp = 4 crops) is split in
+    two, the gradients reduced by XLA; the 3-step loss history equals the single-device one within
+    1e-5 relative (a different summation order of the same float32 terms)."""
+    from pathlib import Path
+
+    tests = str(Path(__file__).parent)
+    one = json.loads(_run(_TRAIN_SCRIPT.format(tests=tests, data=str(dataset), out=str(tmp_path / "one")), {}))
+    two = json.loads(_run(_TRAIN_SCRIPT.format(tests=tests, data=str(dataset), out=str(tmp_path / "two")),
+                          {"XLA_FLAGS": "--xla_force_host_platform_device_count=2"}))
+    assert one["devices"] == 1 and two["devices"] == 2
+    np.testing.assert_allclose(two["history"], one["history"], rtol=1e-5)
+
+
+def test_training_path_imports_without_openimageio_mitsuba_and_jaxopt():
+    """A GPU machine may have none of them: block their import and take a training step."""
+    code = """
+import sys
+class Block:
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in ("OpenImageIO", "mitsuba", "drjit", "jaxopt"):
+            raise ImportError("blocked: " + name)
+sys.meta_path.insert(0, Block())
+import numpy as np, jax
+import jaxdenoise, jaxdenoise.train
+from jaxdenoise.methods import lbf
+from jaxdenoise.train import TrainConfig, _optimizer_key, _step_fn, make_optimizer
+cfg = lbf.Config(radius=1, prefilter=False, features=("normal",), train_spps=(4,), train_crop=6)
+params = lbf.init(jax.random.PRNGKey(0), cfg)
+tc = TrainConfig(optimizer="adam", learning_rate=1e-3)
+state = make_optimizer(tc)[0](params)
+r = np.random.default_rng(0)
+f = lambda *s: r.uniform(0.1, 1, size=s).astype(np.float32)
+batch = {"x": f(2, 6, 6, 8), "color": f(2, 6, 6, 3), "color_var": f(2, 6, 6, 3), "reference": f(2, 6, 6, 3),
+         "spp": np.full(2, 4, np.float32), "guides": {"normal": f(2, 6, 6, 3)}, "guide_vars": {"normal": f(2, 6, 6, 1)}}
+p, s, value, ok = _step_fn("lbf", cfg, _optimizer_key(tc))(params, state, batch)
+assert bool(ok) and np.isfinite(float(value))
+assert not any(m.split(".")[0] in ("OpenImageIO", "mitsuba", "jaxopt") for m in sys.modules)
+print("ok")
+"""
+    assert _run(code, {}) == "ok"

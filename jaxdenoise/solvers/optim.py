@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["adam", "rprop", "AdamState", "RpropState"]
+__all__ = ["adam", "rprop", "AdamState", "RpropState", "schedule", "SCHEDULES", "clip_by_global_norm"]
 
 Schedule = Union[float, Callable[[Any], Any]]
 
@@ -130,3 +130,49 @@ def rprop(step_init: float = 0.1, *, eta_plus: float = 1.2, eta_minus: float = 0
         return new_params, RpropState(delta, g, dw)
 
     return init, update
+
+
+# -- learning-rate schedules (in steps) ------------------------------------------------------------
+SCHEDULES = ("constant", "rampup_rsqrt", "step", "exponential")
+
+
+def schedule(name: str, lr: float, *, every: int = 1, factor: float = 1.0) -> Callable[[Any], Any]:
+    """A learning rate as a pure function of the update count ``t`` (0 for the first update):
+
+    - ``"constant"``: ``lr``;
+    - ``"rampup_rsqrt"``: Chaitanya et al. 2017 Sec. 5.3: a geometric ramp-up by ``factor`` (their
+      tenfold) over the first ``every`` steps, ``lr * factor ** (t / every - 1)``, then a decay as
+      ``lr * sqrt(every / t)`` (their 1/sqrt(t) in epochs, restated in steps);
+    - ``"step"``: ``lr * factor ** floor(t / every)`` (Guo et al. 2019 Sec. 5.1: 0.95 every other
+      epoch);
+    - ``"exponential"``: ``lr * factor ** (t / every)``.
+    """
+    if name not in SCHEDULES:
+        raise ValueError(f"schedule: unknown name {name!r}; expected one of {SCHEDULES}")
+    _check_positive("schedule", lr=lr, factor=factor)
+    if not (isinstance(every, (int, np.integer)) and every >= 1):
+        raise ValueError(f"schedule: argument 'every' is {every!r}; expected an int >= 1")
+    lr, factor, every = float(lr), float(factor), int(every)
+
+    def fn(t):
+        t = jnp.asarray(t, jnp.float32)
+        if name == "constant":
+            return jnp.full_like(t, lr)
+        if name == "step":
+            return lr * factor ** jnp.floor(t / every)
+        if name == "exponential":
+            return lr * factor ** (t / every)
+        ramp = lr * factor ** (t / every - 1.0)
+        return jnp.where(t < every, ramp, lr * jnp.sqrt(every / jnp.maximum(t, 1.0)))
+
+    return fn
+
+
+def clip_by_global_norm(grads: Any, max_norm: float) -> tuple[Any, Any]:
+    """Scale ``grads`` so that their global L2 norm is at most ``max_norm``; returns ``(grads, norm
+    before clipping)``. A zero gradient stays zero (the scale is guarded where the norm is 0)."""
+    leaves = jax.tree_util.tree_leaves(grads)
+    norm = jnp.sqrt(sum(jnp.sum(jnp.square(g.astype(jnp.float32))) for g in leaves)) if leaves else jnp.zeros(())
+    scale = jnp.minimum(1.0, max_norm / jnp.maximum(norm, 1e-30))
+    return jax.tree_util.tree_map(lambda g: (g * scale).astype(g.dtype), grads), norm
+

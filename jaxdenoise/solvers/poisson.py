@@ -34,9 +34,16 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxopt.linear_solve import solve_cg
 
 from ..arrays import compute_dtype, is_concrete
+
+
+def solve_cg(*args, **kwargs):
+    """jaxopt's conjugate gradient, imported on first use: the training path (`jaxdenoise.train`,
+    the optimizers beside this module) must import on machines without jaxopt (a GPU box)."""
+    from jaxopt.linear_solve import solve_cg as cg
+
+    return cg(*args, **kwargs)
 from .dct import dct_apply, laplacian_eigenvalue
 
 __all__ = [
