@@ -246,3 +246,64 @@ def test_jit_agrees_and_any_size_round_trips():
     np.testing.assert_array_equal(np.asarray(nn.pad_to_multiple(jnp.ones((4, 4, 1)), 4)[0]), np.ones((4, 4, 1)))
     with pytest.raises(ValueError, match="LeakyRelu: slope must be in"):
         nn.LeakyRelu(1.5)
+
+
+# -- combinators -------------------------------------------------------------------------------------
+def test_fanout_parallel_concat_and_residual():
+    init, apply = nn.serial(nn.fanout(2), nn.parallel(nn.Conv(3, 3), nn.Conv(5, 1)), nn.Concat())
+    shape, params = init(jax.random.PRNGKey(0), (6, 7, 2))
+    x = _x(6, 7, 2)
+    y = np.asarray(apply(params, x))
+    assert y.shape == shape == (6, 7, 8)
+    _, a = nn.Conv(3, 3)
+    _, b = nn.Conv(5, 1)
+    want = np.concatenate([a(params["1"]["0"], x), b(params["1"]["1"], x)], -1)
+    np.testing.assert_allclose(y, want, atol=1e-6)  # the same convolutions, composed by hand
+    r_init, r_apply = nn.residual(nn.Conv(2, 3))
+    _, rp = r_init(jax.random.PRNGKey(1), (6, 7, 2))
+    np.testing.assert_allclose(np.asarray(r_apply(rp, x)), x + np.asarray(nn.Conv(2, 3)[1](rp, x)), atol=1e-6)
+    with pytest.raises(ValueError, match="it must keep the shape"):
+        nn.residual(nn.Conv(3, 3))[0](jax.random.PRNGKey(0), (6, 7, 2))
+
+
+def _unet(levels=2):
+    stage = lambda c: nn.serial(nn.Conv(c, 3), nn.LeakyRelu(0.1))
+    return nn.UNet([stage(4 * (i + 1)) for i in range(levels)], nn.MaxPool(2), stage(8), nn.Upsample(2),
+                   [stage(4) for _ in range(levels)])
+
+
+def test_unet_shapes_skips_and_any_size():
+    init, apply = _unet(2)
+    shape, params = init(jax.random.PRNGKey(0), (-1, 8, 8, 3))
+    assert shape == (-1, 8, 8, 4)
+    assert set(params) == {"down", "bottleneck", "decode"} and set(params["down"]) == {"0", "1"}
+    for h, w in ((13, 9), (1, 1), (8, 8)):
+        x = jnp.asarray(_x(2, h, w, 3))
+        xp, size = nn.pad_to_multiple(x, 4)
+        y = nn.crop_to(apply(params, xp), size)
+        assert y.shape == (2, h, w, 4) and bool(jnp.all(jnp.isfinite(y)))
+    # the skips carry information: changing the level-0 encoder weights changes the output even
+    # with the bottleneck zeroed (only the skip path is left)
+    x = jnp.asarray(_x(1, 8, 8, 3))
+    zero_b = jax.tree_util.tree_map(jnp.zeros_like, params["bottleneck"])
+    p0 = {**params, "bottleneck": zero_b}
+    p1 = {**p0, "down": {**params["down"], "0": jax.tree_util.tree_map(lambda a: a * 2, params["down"]["0"])}}
+    assert not np.allclose(np.asarray(apply(p0, x)), np.asarray(apply(p1, x)))
+
+
+def test_recurrent_block_carries_its_state():
+    init, apply, init_state = nn.RecurrentBlock(4)
+    shape, params = init(jax.random.PRNGKey(0), (6, 5, 3))
+    assert shape == (6, 5, 4) and init_state((6, 5, 3)).shape == (6, 5, 4)
+    x = jnp.asarray(_x(6, 5, 3))
+    h0 = init_state((6, 5, 3))
+    h1 = apply(params, x, h0)
+    h2 = apply(params, x, h1)
+    assert h1.shape == (6, 5, 4) and not np.allclose(np.asarray(h1), np.asarray(h2))  # the state matters
+    # zero the recurrent half of the first hidden conv: the state no longer matters
+    w = params["h1"]["w"].at[:, :, 4:, :].set(0.0)
+    p = {**params, "h1": {**params["h1"], "w": w}}
+    np.testing.assert_allclose(np.asarray(apply(p, x, h0)), np.asarray(apply(p, x, h1)), atol=1e-6)
+    check_grads(lambda q, h: apply(q, x, h), (params, h1), order=1, modes=("rev",), atol=1e-2, rtol=1e-2)
+    with pytest.raises(ValueError, match="hidden state has shape"):
+        apply(params, x, jnp.zeros((6, 5, 3)))

@@ -13,7 +13,9 @@ Layers here: `Dense` (Kalantari 2015 Eq. 7: ``a = f(W a_prev + w0)``), the activ
 `Softplus` (Kalantari 2015 Sec. 4.1), `Relu`, `LeakyRelu` (Chaitanya 2017: slope 0.1; Guo 2019:
 0.01), `Identity`, and the combinator `serial`. One module per kind beside it, re-exported here:
 `jaxdenoise.nn.conv` (`Conv`, `ConvTranspose`, their initializers, `pad_to_multiple` / `crop_to`)
-and `jaxdenoise.nn.pool` (`MaxPool`, `AvgPool`, `Upsample`).
+`jaxdenoise.nn.pool` (`MaxPool`, `AvgPool`, `Upsample`) and `jaxdenoise.nn.combinators` (`fanout`,
+`parallel`, `Concat`, `residual`, `UNet`, `RecurrentBlock`). Not yet here: BatchNorm with explicit
+running statistics (DEMC's fusion sub-network) - see the convolutional-networks issue notes.
 """
 from __future__ import annotations
 
@@ -24,7 +26,8 @@ import jax.numpy as jnp
 
 __all__ = ["Dense", "Sigmoid", "Softplus", "Relu", "LeakyRelu", "Identity", "Elementwise", "serial", "Layer",
            "uniform_init", "glorot_uniform_init", "Conv", "ConvTranspose", "he_normal_init", "bilinear_init",
-           "identity_init", "pad_to_multiple", "crop_to", "MaxPool", "AvgPool", "Upsample"]
+           "identity_init", "pad_to_multiple", "crop_to", "MaxPool", "AvgPool", "Upsample", "fanout", "parallel",
+           "Concat", "residual", "UNet", "RecurrentBlock"]
 
 Layer = tuple[Callable[..., Any], Callable[..., Any]]
 Initializer = Callable[[jax.Array, tuple[int, ...]], jax.Array]
@@ -168,3 +171,4 @@ def serial(*layers: Layer) -> Layer:
 # Sibling modules, one per kind of layer (imported last: they use nothing from this module).
 from .conv import Conv, ConvTranspose, bilinear_init, crop_to, he_normal_init, identity_init, pad_to_multiple  # noqa: E402
 from .pool import AvgPool, MaxPool, Upsample  # noqa: E402
+from .combinators import Concat, RecurrentBlock, UNet, fanout, parallel, residual  # noqa: E402
