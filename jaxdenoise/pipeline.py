@@ -1,0 +1,365 @@
+"""The training-data pipeline of the networks: a decoded cache, random crops and 7-frame sequence
+crops, the augmentations of Chaitanya et al. 2017 Sec. 4.3, and a compact export.
+
+**Cache** (`build_cache` / `Cache`): every render of a data folder (`jaxdenoise.data`: shots and
+``frame_XXXX/`` sequences) is decoded once, for the buffers a method names, into one float32
+``.npy`` per render (channels of the named fields stacked in that order) plus one per reference,
+under ``CACHE_DIR/<key>/``; the key hashes the field list and every source file's path, size and
+modification time, so a changed data folder gets a new cache and an unchanged one is reused: the
+second epoch (and the second run) reads no EXR. Arrays are opened memory-mapped. Files are written
+under a temporary name and renamed (an interrupted build leaves no half-written array; the index is
+written last).
+
+**Sampling** (`Cache.crops`, `Cache.sequences`): deterministic functions of a
+``numpy.random.Generator``; the trainer seeds it from ``(seed, step)``, so a resumed run draws the
+same batches. A crop is the same window of every buffer and of the reference; a sequence crop is the
+same window of 7 consecutive frames of one noisy video.
+
+**Augmentations** (`augment`), applied consistently to every buffer of a crop / sequence:
+
+- rotation by 0 / 90 / 180 / 270 degrees (Chaitanya 2017 Sec. 4.3) and a horizontal flip (our
+  addition; mirrored images are as plausible as rotated ones). World-space vectors (normal,
+  position) are left as they are, being independent of the image orientation; the gradient-domain
+  differences ``dx`` / ``dy`` are remapped as the forward-difference convention requires (a 90-degree
+  turn swaps them, negating one and shifting it by a pixel: `rotate90`, `flip_lr`);
+- a per-channel colour modulation in [0, 2] for the whole sequence (Chaitanya 2017): radiance-like
+  fields (``color``, the reference, ``dx``, ``dy``) are multiplied by ``m``, ``color_var`` by ``m^2``;
+  albedo is not (the modulation tints the illumination, the quantity the network reconstructs);
+- forward or backward playback (sequences), and random camera stops: the camera and the target stay
+  on one frame for a few frames while the noisy input advances through that frame's other noise
+  instances (sequences with several instances per frame).
+
+**Export** (`Cache.export`, `load_export`): a fixed set of crops or sequence crops in one ``.npz``
+(float16 for radiance-like and unbounded fields, 8-bit for bounded features as Chaitanya 2017
+Sec. 3.2 stores them: normals, albedo, visibility, roughness), at most ``max_mib`` (60 by default):
+the number that fits is stated in the file and returned, so a run can move to another machine
+(`ExportedCache` samples from it with the same interface).
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from .buffers import CHANNELS, IMAGE_FIELDS
+
+__all__ = ["build_cache", "Cache", "ExportedCache", "load_export", "augment", "rotate90", "flip_lr",
+           "RADIANCE", "BOUNDED"]
+
+# Fields that scale with radiance (colour modulation multiplies them by m; variances by m^2).
+RADIANCE = ("color", "dx", "dy", "reference")
+# Bounded features stored as 8 bits in an export (value range).
+BOUNDED = {"normal": (-1.0, 1.0), "albedo": (0.0, 1.0), "albedo2": (0.0, 1.0), "visibility": (0.0, 1.0),
+           "roughness": (0.0, 1.0)}
+GRADIENTS = ("dx", "dy")
+CACHE_VERSION = 1
+
+
+def _save_npy(path: Path, array: np.ndarray) -> None:
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}.npy")
+    np.save(tmp, array)
+    os.replace(tmp, path)
+
+
+def _channels(fields: Sequence[str]) -> dict[str, slice]:
+    out, c = {}, 0
+    for f in fields:
+        n = len(CHANNELS[f])
+        out[f] = slice(c, c + n)
+        c += n
+    return out
+
+
+# -- geometric transforms (any leading axes, (..., H, W, C)) -----------------------------------------
+
+def rotate90(fields: dict[str, np.ndarray], k: int = 1) -> dict[str, np.ndarray]:
+    """Rotate every image by ``k`` quarter turns counter-clockwise (``np.rot90`` on the H, W axes).
+
+    ``dx`` / ``dy`` follow the forward-difference convention (``dx[y, x] = I[y, x+1] - I[y, x]``,
+    ``dy[y, x] = I[y+1, x] - I[y, x]``, last column / row 0). For one quarter turn,
+    ``I'[i, j] = I[j, W-1-i]``, hence ``dx' = rot(dy)`` and ``dy'[i, j] = -rot(dx)[i+1, j]`` (last row
+    0): swapped, one negated and shifted by a pixel."""
+    out = dict(fields)
+    for _ in range(int(k) % 4):
+        rot = {f: np.rot90(v, 1, axes=(-3, -2)) for f, v in out.items()}
+        if "dx" in out and "dy" in out:
+            rdx = rot["dx"]
+            dy = np.zeros_like(rdx)
+            dy[..., :-1, :, :] = -rdx[..., 1:, :, :]
+            rot["dx"], rot["dy"] = rot["dy"], dy
+        elif "dx" in out or "dy" in out:
+            raise ValueError("rotate90: dx and dy must come together (a rotation mixes them)")
+        out = rot
+    return {f: np.ascontiguousarray(v) for f, v in out.items()}
+
+
+def flip_lr(fields: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Mirror every image left-right: ``I'[y, x] = I[y, W-1-x]``, hence ``dy' = flip(dy)`` and
+    ``dx'[y, x] = -flip(dx)[y, x+1]`` (last column 0)."""
+    out = {f: np.ascontiguousarray(v[..., ::-1, :]) for f, v in fields.items()}
+    if "dx" in out:
+        fdx = out["dx"]
+        dx = np.zeros_like(fdx)
+        dx[..., :, :-1, :] = -fdx[..., :, 1:, :]
+        out["dx"] = dx
+    return out
+
+
+def augment(item: dict[str, np.ndarray], rng: np.random.Generator, *, rotate: bool = True, flip: bool = True,
+            modulate: bool = True, reverse: bool = False) -> dict[str, np.ndarray]:
+    """One random augmentation (module docstring) of one crop ``(H, W, C)`` or sequence crop
+    ``(T, H, W, C)`` (the same for every field and every frame). Non-image entries (``spp``) pass
+    through; ``reverse`` (sequences) plays the frames backwards with probability 1/2."""
+    images = {f: v for f, v in item.items() if f in IMAGE_FIELDS or f == "reference"}
+    rest = {f: v for f, v in item.items() if f not in images}
+    images = rotate90(images, int(rng.integers(0, 4)) if rotate else 0)
+    if flip and rng.random() < 0.5:
+        images = flip_lr(images)
+    if modulate:
+        m = rng.uniform(0.0, 2.0, size=3).astype(np.float32)
+        for f in list(images):
+            if f in RADIANCE:
+                images[f] = images[f] * m
+            elif f == "color_var":
+                images[f] = images[f] * m * m
+    if reverse and rng.random() < 0.5:
+        images = {f: np.ascontiguousarray(v[::-1]) for f, v in images.items()}
+        rest = {f: (v[::-1] if np.ndim(v) >= 1 else v) for f, v in rest.items()}
+    return {**images, **rest}
+
+
+# -- the cache -------------------------------------------------------------------------------------
+
+@dataclasses.dataclass(frozen=True)
+class _Frame:
+    array: str  # file name of the render's stacked channels
+    reference: str  # file name of the reference
+    spp: int
+    shot: str  # shot name (sequence frames: "<sequence>/frame_XXXX")
+
+
+def _key(fields: Sequence[str], files: list[Path]) -> str:
+    h = hashlib.sha256(json.dumps({"v": CACHE_VERSION, "fields": list(fields)}).encode())
+    for p in files:
+        st = p.stat()
+        h.update(f"{p.resolve()}|{st.st_size}|{st.st_mtime_ns}".encode())
+    return h.hexdigest()[:16]
+
+
+def build_cache(data_dir: str | os.PathLike, fields: Sequence[str], cache_dir: str | os.PathLike, *,
+                spps: Sequence[int] | None = None, progress: bool = False) -> "Cache":
+    """Decode the renders of ``data_dir`` (those at ``spps``, or all) for ``fields`` (``color``
+    first, others in the given order) into ``cache_dir`` once; reuse it when nothing changed."""
+    from .data import discover, sequences
+    from .io import read_buffers, read_image
+
+    fields = ["color"] + [f for f in fields if f != "color"]
+    unknown = [f for f in fields if f not in CHANNELS]
+    if unknown:
+        raise ValueError(f"build_cache: unknown buffer name(s) {unknown}; known: {list(CHANNELS)}")
+    shots = discover(data_dir)
+    seqs, singles = sequences(shots)
+    wanted = None if spps is None else {int(s) for s in spps}
+    renders = [(s, r) for s in shots for r in s.renders if wanted is None or r.spp in wanted]
+    if not renders:
+        raise FileNotFoundError(f"{data_dir}: no render" + (f" at spp {sorted(wanted)}" if wanted else ""))
+    files = sorted({r.path for _, r in renders} | {s.reference for s, _ in renders})
+    folder = Path(cache_dir) / _key(fields, files)
+    index_path = folder / "index.json"
+    if index_path.is_file():
+        return Cache(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    it = renders
+    if progress:
+        from tqdm.auto import tqdm
+
+        it = tqdm(renders, desc="decode cache", unit="render")
+    names: dict[Path, str] = {}
+    frames = []
+    for shot, r in it:
+        if shot.reference not in names:
+            names[shot.reference] = f"ref_{len(names):05d}.npy"
+            _save_npy(folder / names[shot.reference], np.asarray(read_image(shot.reference), np.float32)[..., :3])
+        b, _ = read_buffers(r.path)
+        missing = [f for f in fields if getattr(b, f) is None]
+        if missing:
+            raise ValueError(f"{r.path}: lacks buffer(s) {missing} that the cache was asked for")
+        if r.spp is None:
+            raise ValueError(f"{r.path}: no integer 'spp' header attribute")
+        name = f"frame_{len(frames):06d}.npy"
+        _save_npy(folder / name, np.concatenate([np.asarray(getattr(b, f), np.float32) for f in fields], -1))
+        label = f"{shot.folder.parent.name}/{shot.name}" if shot.frame is not None else shot.name
+        frames.append({"array": name, "reference": names[shot.reference], "spp": int(r.spp), "shot": label,
+                       "render": r.path.name, "sequence": str(shot.folder.parent) if shot.frame is not None else None,
+                       "frame": shot.frame})
+    index = {"version": CACHE_VERSION, "fields": fields, "data_dir": str(data_dir), "frames": frames,
+             "sequences": len(seqs), "shots": len(singles)}
+    tmp = index_path.with_name(".index.json.tmp")
+    tmp.write_text(json.dumps(index, indent=1))
+    os.replace(tmp, index_path)
+    return Cache(folder)
+
+
+class Cache:
+    """A decoded cache (`build_cache`): memory-mapped arrays and crop / sequence samplers."""
+
+    def __init__(self, folder: str | os.PathLike) -> None:
+        self.folder = Path(folder)
+        index = json.loads((self.folder / "index.json").read_text())
+        self.fields: list[str] = index["fields"]
+        self.frames: list[dict] = index["frames"]
+        self.slices = _channels(self.fields)
+        self._arrays: dict[str, np.ndarray] = {}
+        # sequences: (sequence folder, render name) -> frame indices in time order, one per frame
+        # (the render's noise instance), plus the other instances of each frame for camera stops
+        seq: dict[tuple, dict[int, list[int]]] = {}
+        for i, f in enumerate(self.frames):
+            if f["sequence"] is not None:
+                seq.setdefault((f["sequence"], f["spp"]), {}).setdefault(f["frame"], []).append(i)
+        self.videos = [{t: ids for t, ids in sorted(v.items())} for _, v in sorted(seq.items())]
+
+    def array(self, name: str) -> np.ndarray:
+        if name not in self._arrays:
+            self._arrays[name] = np.load(self.folder / name, mmap_mode="r")
+        return self._arrays[name]
+
+    def _item(self, i: int, y: int, x: int, size: int) -> dict[str, np.ndarray]:
+        f = self.frames[i]
+        a = self.array(f["array"])[y:y + size, x:x + size]
+        out = {name: np.array(a[..., sl]) for name, sl in self.slices.items()}
+        out["reference"] = np.array(self.array(f["reference"])[y:y + size, x:x + size])
+        out["spp"] = np.float32(f["spp"])
+        return out
+
+    def crops(self, n: int, size: int, rng: np.random.Generator, *, spps: Sequence[int] | None = None,
+              **aug: Any) -> dict[str, np.ndarray]:
+        """``n`` random ``size x size`` crops (one random render each, at ``spps`` if given), augmented
+        (`augment` keywords; ``augment=False`` for none), stacked: ``{field: (n, size, size, C),
+        "reference": ..., "spp": (n,)}``."""
+        pool = [i for i, f in enumerate(self.frames) if spps is None or f["spp"] in set(spps)]
+        if not pool:
+            raise ValueError(f"{self.folder}: no cached render" + (f" at spp {list(spps)}" if spps else ""))
+        items = []
+        for _ in range(int(n)):
+            i = pool[int(rng.integers(0, len(pool)))]
+            h, w = self.array(self.frames[i]["array"]).shape[:2]
+            c = min(size, h, w)
+            item = self._item(i, int(rng.integers(0, h - c + 1)), int(rng.integers(0, w - c + 1)), c)
+            items.append(_augment_maybe(item, rng, aug))
+        return _stack(items)
+
+    def sequences(self, n: int, size: int, rng: np.random.Generator, *, frames: int = 7,
+                  stop_probability: float = 0.0, max_stop: int = 3, **aug: Any) -> dict[str, np.ndarray]:
+        """``n`` random ``frames``-long sequence crops ``{field: (n, frames, size, size, C), ...}`` of
+        the cached videos; with ``stop_probability`` a camera stop (module docstring) of 2..``max_stop``
+        frames is inserted, cycling through the stopped frame's noise instances (sequences whose
+        frames have one instance get none). ``reverse`` playback is on by default here."""
+        videos = [v for v in self.videos if len(v) >= frames]
+        if not videos:
+            raise ValueError(f"{self.folder}: no cached sequence with {frames} frames")
+        aug = {"reverse": True, **aug}
+        items = []
+        for _ in range(int(n)):
+            v = videos[int(rng.integers(0, len(videos)))]
+            keys = list(v)
+            t0 = int(rng.integers(0, len(keys) - frames + 1))
+            picks = [(keys[t0 + k], 0) for k in range(frames)]
+            if stop_probability and rng.random() < stop_probability and max(len(ids) for ids in v.values()) > 1:
+                start = int(rng.integers(0, frames - 1))
+                length = int(rng.integers(2, max_stop + 1))
+                stop_t = picks[start][0]
+                for k in range(start, min(frames, start + length)):
+                    picks[k] = (stop_t, k - start)
+                for k in range(start + length, frames):
+                    picks[k] = (keys[min(len(keys) - 1, t0 + k - length + 1)], 0)
+            i0 = v[picks[0][0]][0]
+            h, w = self.array(self.frames[i0]["array"]).shape[:2]
+            c = min(size, h, w)
+            y, x = int(rng.integers(0, h - c + 1)), int(rng.integers(0, w - c + 1))
+            seq = [self._item(v[t][inst % len(v[t])], y, x, c) for t, inst in picks]
+            item = {f: np.stack([s[f] for s in seq]) for f in seq[0]}
+            items.append(_augment_maybe(item, rng, aug))
+        return _stack(items)
+
+    def export(self, path: str | os.PathLike, *, n: int, size: int, rng: np.random.Generator,
+               frames: int | None = None, max_mib: float = 60.0) -> dict:
+        """Write ``n`` crops (or ``frames``-long sequence crops) without augmentation to one compact
+        ``.npz`` (module docstring), keeping as many as fit in ``max_mib``; returns its summary
+        (``count``, ``bytes``, ``per_item_bytes``), also stored in the file."""
+        draw = (lambda k: self.crops(k, size, rng, augment=False)) if frames is None else \
+            (lambda k: self.sequences(k, size, rng, frames=frames, augment=False))
+        probe = _encode(draw(1))
+        per_item = sum(a.nbytes for a in probe.values())
+        fit = int(max_mib * 2**20 // max(per_item, 1))
+        count = min(int(n), fit)
+        if count < 1:
+            raise ValueError(f"export: one item takes {per_item / 2**20:.1f} MiB, more than max_mib={max_mib}")
+        enc = _encode(draw(count))
+        summary = {"count": count, "requested": int(n), "fit": fit, "per_item_bytes": per_item, "size": size,
+                   "frames": frames, "fields": self.fields, "max_mib": max_mib}
+        enc["summary"] = np.frombuffer(json.dumps(summary).encode(), np.uint8)
+        path = Path(path)
+        tmp = path.with_name(f".{path.name}.tmp{os.getpid()}.npz")
+        np.savez_compressed(tmp, **enc)
+        os.replace(tmp, path)
+        summary["bytes"] = path.stat().st_size
+        return summary
+
+
+def _augment_maybe(item, rng, aug):
+    aug = dict(aug)
+    if aug.pop("augment", True) is False:
+        return item
+    return augment(item, rng, **aug)
+
+
+def _stack(items: list[dict]) -> dict[str, np.ndarray]:
+    return {f: np.stack([it[f] for it in items]) for f in items[0]}
+
+
+def _encode(batch: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    out = {}
+    for f, v in batch.items():
+        if f in BOUNDED:
+            lo, hi = BOUNDED[f]
+            out[f"u8_{f}"] = np.round((np.clip(v, lo, hi) - lo) / (hi - lo) * 255).astype(np.uint8)
+        elif f == "spp":
+            out[f] = np.asarray(v, np.float32)
+        else:
+            out[f"f16_{f}"] = np.asarray(v, np.float16)
+    return out
+
+
+def load_export(path: str | os.PathLike) -> "ExportedCache":
+    """Open a file written by `Cache.export` (needs only numpy: no OpenImageIO on the other machine)."""
+    return ExportedCache(path)
+
+
+class ExportedCache:
+    """The crops or sequence crops of an export, decoded to float32, sampled like `Cache`'s."""
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        z = np.load(path)
+        self.summary = json.loads(bytes(z["summary"]).decode())
+        self.items: dict[str, np.ndarray] = {}
+        for k in z.files:
+            if k.startswith("u8_"):
+                f = k[3:]
+                lo, hi = BOUNDED[f]
+                self.items[f] = z[k].astype(np.float32) / 255 * (hi - lo) + lo
+            elif k.startswith("f16_"):
+                self.items[k[4:]] = z[k].astype(np.float32)
+            elif k == "spp":
+                self.items[k] = z[k]
+        self.count = int(self.summary["count"])
+
+    def sample(self, n: int, rng: np.random.Generator, **aug: Any) -> dict[str, np.ndarray]:
+        """``n`` items drawn with replacement, each augmented (`augment` keywords)."""
+        idx = rng.integers(0, self.count, size=int(n))
+        items = [{f: v[i] for f, v in self.items.items()} for i in idx]
+        return _stack([_augment_maybe(it, rng, aug) for it in items])
