@@ -234,3 +234,33 @@ def test_driver_refuses_stacked_frames_and_empty_sequences(weights):
         run_all(m, params, [])
     with pytest.raises(BuffersError, match="leading time axis"):
         jd.denoise_sequence(synthetic_frame(), method="gaussian")
+
+
+def test_causal_method_through_driver_and_bench(tmp_path):
+    """A toy recurrent method: the driver carries its state (frame t = EMA of frames 0..t), and bench
+    writes its temporal record with kind 'causal'; the EMA flickers less than the input."""
+    from jaxdenoise.io import write_buffers, write_image
+    from jaxdenoise.methods import _REGISTRY, register
+
+    register("ema", "fake_recurrent")
+    try:
+        m = get("ema")
+        assert m.temporal == "causal"
+        frames = _frames(3)
+        out = run_all(m, {}, frames)
+        c = [np.asarray(f.color) for f in frames]
+        want = [c[0], 0.5 * c[0] + 0.5 * c[1]]
+        want.append(0.5 * want[1] + 0.5 * c[2])
+        np.testing.assert_allclose(out, np.stack(want), rtol=1e-6)
+        ref = synthetic_frame(12, 12, seed=99).color
+        for i, f in enumerate(frames):
+            d = tmp_path / "data" / "seq" / f"frame_{i:04d}"
+            d.mkdir(parents=True)
+            write_image(d / "reference.exr", ref)  # a static scene: any change is flicker
+            write_buffers(d / "spp0004_00.exr", f)
+        report = bench.run(tmp_path / "data", ["input", "ema"], tmp_path / "r", runs=5, progress=False)
+    finally:
+        _REGISTRY.pop("ema")
+    t = {x["method"]: x for x in report["temporal"]}
+    assert t["ema"]["kind"] == "causal" and t["ema"]["frames"] == 3
+    assert t["ema"]["temporal_error"] < t["input"]["temporal_error"]
