@@ -41,7 +41,7 @@ Optimization (`TrainConfig`): Adam (moment decays ``adam_b1`` / ``adam_b2``) wit
 schedule in steps (``schedule``: constant, the geometric ramp-up then 1/sqrt(t) of Chaitanya 2017,
 step decay, exponential; `jaxdenoise.solvers.optim.schedule`) or RPROP; optional clipping of the
 gradient's global norm (``clip_norm``). ``loss`` may return ``(scalar, aux)``; ``aux["updates"]``
-replaces FROZEN params entries after each step (running statistics). Data parallel: every batch is
+replaces params leaves after each step (running statistics, `jaxdenoise.nn.state`). Data parallel: every batch is
 split over all local devices (`shard_batch`; params replicated, gradients reduced by XLA), so the
 same command uses every GPU (or ``--xla_force_host_platform_device_count`` CPU devices) JAX sees.
 This module imports without OpenImageIO, Mitsuba and jaxopt (EXRs are read only by ``make_dataset``
@@ -67,6 +67,7 @@ import numpy as np
 from . import checkpoint
 from .fsutil import write_json
 from .methods import MethodError, get
+from .nn.state import merge_updates
 
 __all__ = ["TrainConfig", "TrainError", "train", "restore_like", "make_optimizer", "summary_line",
            "load_validation", "validate", "shard_batch"]
@@ -158,9 +159,9 @@ def restore_like(template: Any, loaded: Any, *, where: str = "checkpoint") -> An
 def _step_fn(method_name: str, config: Any, opt_key: tuple):
     """The jitted training step, cached so repeated runs with the same settings compile once.
 
-    ``loss`` may return a scalar or ``(scalar, aux)``; an ``aux`` dict with ``"updates"`` replaces
-    those top-level params entries after the step (they must be ``FROZEN``: e.g. BatchNorm running
-    statistics computed by the forward pass, DESIGN.md "Methods"). The gradient is clipped to
+    ``loss`` may return a scalar or ``(scalar, aux)``; an ``aux`` dict with ``"updates"`` (a nested dict
+    of params leaves, e.g. BatchNorm running statistics from the forward pass, `jaxdenoise.nn.state`)
+    replaces those leaves after the optimizer step. The gradient is clipped to
     ``clip_norm`` (global L2 norm) when set."""
     module = get(method_name, config).module
     fields = ("optimizer", "learning_rate", "adam_b1", "adam_b2", "schedule", "schedule_every",
@@ -186,11 +187,12 @@ def _step_fn(method_name: str, config: Any, opt_key: tuple):
         new_p, new_s = opt_update(grads, s, p)
         if frozen:
             new_p = {**new_p, **{k: p[k] for k in frozen}}
-        updates = aux.get("updates", {}) if isinstance(aux, dict) else {}
-        bad = sorted(set(updates) - set(frozen))
-        if bad:
-            raise MethodError(f"method '{method_name}': loss aux updates {bad}, which are not FROZEN params")
-        new_p = {**new_p, **updates}
+        updates = aux.get("updates") if isinstance(aux, dict) else None
+        if updates:
+            try:
+                new_p = merge_updates(new_p, updates)
+            except ValueError as e:
+                raise MethodError(f"method '{method_name}': loss aux updates do not fit the params: {e}") from None
         # A non-finite step keeps the previous params and optimizer state (module docstring).
         keep = lambda a, b_: jnp.where(finite, a, b_)
         return jax.tree_util.tree_map(keep, new_p, p), jax.tree_util.tree_map(keep, new_s, s), value, finite

@@ -307,3 +307,68 @@ def test_recurrent_block_carries_its_state():
     check_grads(lambda q, h: apply(q, x, h), (params, h1), order=1, modes=("rev",), atol=1e-2, rtol=1e-2)
     with pytest.raises(ValueError, match="hidden state has shape"):
         apply(params, x, jnp.zeros((6, 5, 3)))
+
+
+# -- BatchNorm and stateful combinators ----------------------------------------------------------------
+def test_batchnorm_train_and_eval():
+    init, apply = nn.BatchNorm(momentum=0.9)
+    _, p = init(None, (-1, 5, 5, 2))
+    x = _x(4, 5, 5, 2) * 3 + 1
+    y, upd = apply(p, x, train=True)
+    y = np.asarray(y)
+    # training mode: zero mean, unit (biased) variance per channel (tolerance: float32 sums of 100 values)
+    np.testing.assert_allclose(y.mean(axis=(0, 1, 2)), 0, atol=1e-5)
+    np.testing.assert_allclose(y.var(axis=(0, 1, 2)), 1, rtol=1e-3)
+    n = 4 * 5 * 5
+    np.testing.assert_allclose(upd["mean"], 0.1 * x.mean(axis=(0, 1, 2)), rtol=1e-5)
+    np.testing.assert_allclose(upd["var"], 0.9 + 0.1 * x.var(axis=(0, 1, 2)) * n / (n - 1), rtol=1e-5)
+    # inference mode: the stored statistics, nothing returned
+    q = {**p, "mean": np.array([1.0, -2.0], np.float32), "var": np.array([4.0, 0.25], np.float32)}
+    np.testing.assert_allclose(np.asarray(apply(q, x)), (x - q["mean"]) / np.sqrt(q["var"] + 1e-5), rtol=1e-5,
+                               atol=1e-5)
+    # a constant channel stays finite (eps)
+    yc, _ = apply(p, np.ones((2, 3, 3, 2), np.float32), train=True)
+    assert np.all(np.isfinite(np.asarray(yc)))
+
+
+def test_stateful_combinators_gather_updates():
+    init, apply = nn.serial(nn.Conv(2, 3), nn.BatchNorm(), nn.LeakyRelu(0.1), nn.residual(
+        nn.serial(nn.Conv(2, 3), nn.BatchNorm())))
+    assert nn.is_stateful(apply)
+    _, params = init(jax.random.PRNGKey(0), (-1, 6, 6, 3))
+    x = jnp.asarray(_x(2, 6, 6, 3))
+    y_eval = apply(params, x)
+    y, updates = apply(params, x, train=True)
+    assert set(updates) == {"1", "3"} and set(updates["3"]) == {"1"}  # keyed like the params
+    merged = nn.merge_updates(params, updates)
+    assert not np.allclose(np.asarray(merged["1"]["mean"]), np.asarray(params["1"]["mean"]))
+    np.testing.assert_array_equal(np.asarray(merged["0"]["w"]), np.asarray(params["0"]["w"]))  # untouched
+    assert y.shape == y_eval.shape
+    with pytest.raises(ValueError, match="updates for unknown entries"):
+        nn.merge_updates(params, {"9": {}})
+
+
+def test_trainer_merges_batchnorm_statistics(tmp_path):
+    """The loss returns the running statistics as aux updates; after 20 steps the running mean is the
+    exponential average (momentum 0.9) of the 20 batches' means, recomputed here by hand."""
+    from jaxdenoise import checkpoint
+    from jaxdenoise.methods import _REGISTRY, register
+    from jaxdenoise.train import train
+
+    register("fakebn", "fake_bn_method")
+    try:
+        train("fakebn", tmp_path, tmp_path / "run", steps=20, progress=False, optimizer="adam",
+              learning_rate=1e-9, checkpoint_every=20)
+    finally:
+        _REGISTRY.pop("fakebn")
+    p, _ = checkpoint.load(tmp_path / "run" / "weights")
+    import fake_bn_method as fake
+
+    p0 = fake.init(jax.random.PRNGKey(0), fake.Config())  # the trainer's initial params (seed 0)
+    conv = nn.Conv(3, 1)[1]
+    want = np.zeros(3)
+    for step in range(20):  # the trainer's batches: rng seeded from (seed, step)
+        b = fake.batch(None, step, fake.Config(), np.random.default_rng([0, step]))
+        want = 0.9 * want + 0.1 * np.asarray(conv(p0["net"]["0"], b["x"])).mean(axis=(0, 1, 2))
+    # tolerance 1e-4 relative: Adam at lr 1e-9 moves the conv weights by ~2e-8 over the 20 steps
+    np.testing.assert_allclose(np.asarray(p["net"]["1"]["mean"]), want, rtol=1e-4)

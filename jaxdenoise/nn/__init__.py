@@ -14,8 +14,9 @@ Layers here: `Dense` (Kalantari 2015 Eq. 7: ``a = f(W a_prev + w0)``), the activ
 0.01), `Identity`, and the combinator `serial`. One module per kind beside it, re-exported here:
 `jaxdenoise.nn.conv` (`Conv`, `ConvTranspose`, their initializers, `pad_to_multiple` / `crop_to`)
 `jaxdenoise.nn.pool` (`MaxPool`, `AvgPool`, `Upsample`) and `jaxdenoise.nn.combinators` (`fanout`,
-`parallel`, `Concat`, `residual`, `UNet`, `RecurrentBlock`). Not yet here: BatchNorm with explicit
-running statistics (DEMC's fusion sub-network) - see the convolutional-networks issue notes.
+`parallel`, `Concat`, `residual`, `UNet`, `RecurrentBlock`), `jaxdenoise.nn.norm` (`BatchNorm`) with
+the stateful-layer convention of `jaxdenoise.nn.state` (explicit ``train`` mode, running statistics
+returned as updates).
 """
 from __future__ import annotations
 
@@ -27,7 +28,7 @@ import jax.numpy as jnp
 __all__ = ["Dense", "Sigmoid", "Softplus", "Relu", "LeakyRelu", "Identity", "Elementwise", "serial", "Layer",
            "uniform_init", "glorot_uniform_init", "Conv", "ConvTranspose", "he_normal_init", "bilinear_init",
            "identity_init", "pad_to_multiple", "crop_to", "MaxPool", "AvgPool", "Upsample", "fanout", "parallel",
-           "Concat", "residual", "UNet", "RecurrentBlock"]
+           "Concat", "residual", "UNet", "RecurrentBlock", "BatchNorm", "merge_updates"]
 
 Layer = tuple[Callable[..., Any], Callable[..., Any]]
 Initializer = Callable[[jax.Array, tuple[int, ...]], jax.Array]
@@ -134,7 +135,7 @@ def Identity() -> Layer:
 
 
 def serial(*layers: Layer) -> Layer:
-    """Compose layers in order.
+    """Compose layers in order (stateful when a layer is: `jaxdenoise.nn.state`).
 
     Params are a dict keyed by the layer index as a string (``{"0": ..., "2": ...}``), holding only
     layers that have parameters: parameter-free layers (activations) are left out, so the pytree
@@ -155,20 +156,24 @@ def serial(*layers: Layer) -> Layer:
                 params[str(i)] = p
         return shape, params
 
-    def apply(params: dict, x: jax.Array) -> jax.Array:
+    def apply(params: dict, x: jax.Array, train: bool = False):
         if not isinstance(params, dict):
             raise ValueError(f"serial: params must be a dict keyed by layer index, got {type(params).__name__}")
         extra = sorted(set(params) - {str(i) for i in range(len(applies))})
         if extra:
             raise ValueError(f"serial: params for unknown layer(s) {extra}; the model has {len(applies)} layers")
+        updates: dict = {}
         for i, layer_apply in enumerate(applies):
-            x = layer_apply(params.get(str(i), {}), x)
-        return x
+            x = call(layer_apply, params.get(str(i), {}), x, train, updates, str(i))
+        return (x, updates) if train and stateful else x
 
-    return init, apply
+    stateful = any(is_stateful(a) for a in applies)
+    return init, mark(apply, stateful)
 
 
 # Sibling modules, one per kind of layer (imported last: they use nothing from this module).
+from .state import call, is_stateful, mark, merge_updates  # noqa: E402
+from .norm import BatchNorm  # noqa: E402
 from .conv import Conv, ConvTranspose, bilinear_init, crop_to, he_normal_init, identity_init, pad_to_multiple  # noqa: E402
 from .pool import AvgPool, MaxPool, Upsample  # noqa: E402
 from .combinators import Concat, RecurrentBlock, UNet, fanout, parallel, residual  # noqa: E402

@@ -11,7 +11,8 @@
   new hidden state. The hidden state is an explicit argument and return value:
   ``apply(params, x, h) -> h_new`` and ``init_state(in_shape) -> zeros``.
 
-Parameter pytrees are dicts keyed by position (``"0"``, ``"1"``, ...) or by role (``"down"``,
+Stateful children (BatchNorm) make a combinator stateful: its ``apply`` takes ``train`` and, in
+training mode, returns ``(y, updates)`` (`jaxdenoise.nn.state`). Parameter pytrees are dicts keyed by position (``"0"``, ``"1"``, ...) or by role (``"down"``,
 ``"up"``...), leaving out parameter-free children, like `serial`'s.
 """
 from __future__ import annotations
@@ -22,6 +23,7 @@ import jax
 import jax.numpy as jnp
 
 from .conv import Conv
+from .state import call, is_stateful, mark
 
 __all__ = ["fanout", "parallel", "Concat", "residual", "UNet", "RecurrentBlock"]
 
@@ -62,12 +64,16 @@ def parallel(*layers):
             _keep(params, str(i), p)
         return tuple(shapes), params
 
-    def apply(params, xs):
+    def apply(params, xs, train: bool = False):
         if len(xs) != len(applies):
             raise ValueError(f"parallel: {len(xs)} inputs for {len(applies)} layers")
-        return tuple(f(params.get(str(i), {}), x) for i, (f, x) in enumerate(zip(applies, xs)))
+        updates: dict = {}
+        ys = tuple(call(f, params.get(str(i), {}), x, train, updates, str(i))
+                   for i, (f, x) in enumerate(zip(applies, xs)))
+        return (ys, updates) if train and stateful else ys
 
-    return init, apply
+    stateful = any(is_stateful(a) for a in applies)
+    return init, mark(apply, stateful)
 
 
 def Concat():
@@ -95,10 +101,13 @@ def residual(layer):
             raise ValueError(f"residual: the layer maps {tuple(in_shape)} to {tuple(shape)}; it must keep the shape")
         return shape, params
 
-    def apply(params, x):
-        return x + f_apply(params, x)
+    def apply(params, x, train: bool = False):
+        if train and is_stateful(f_apply):
+            y, updates = f_apply(params, x, train=True)
+            return x + y, updates
+        return x + (f_apply(params, x, train=False) if is_stateful(f_apply) else f_apply(params, x))
 
-    return init, apply
+    return init, mark(apply, is_stateful(f_apply))
 
 
 def UNet(down: Sequence, pool, bottleneck, up, decode: Sequence):
@@ -134,19 +143,22 @@ def UNet(down: Sequence, pool, bottleneck, up, decode: Sequence):
         params = {k: v for k, v in params.items() if jax.tree_util.tree_leaves(v)}
         return shape, params
 
-    def apply(params, x):
+    def apply(params, x, train: bool = False):
         skips = []
+        updates: dict = {"down": {}, "decode": {}}
         for i, (_, f) in enumerate(down):
-            x = f(params.get("down", {}).get(str(i), {}), x)
+            x = call(f, params.get("down", {}).get(str(i), {}), x, train, updates["down"], str(i))
             skips.append(x)
             x = p_apply({}, x)
-        x = b_apply(params.get("bottleneck", {}), x)
+        x = call(b_apply, params.get("bottleneck", {}), x, train, updates, "bottleneck")
         for i in reversed(range(len(decode))):
             x = u_apply({}, x)
-            x = decode[i][1](params.get("decode", {}).get(str(i), {}), jnp.concatenate([x, skips[i]], axis=-1))
-        return x
+            x = call(decode[i][1], params.get("decode", {}).get(str(i), {}), jnp.concatenate([x, skips[i]], axis=-1),
+                     train, updates["decode"], str(i))
+        return (x, {k: v for k, v in updates.items() if v}) if train and stateful else x
 
-    return init, apply
+    stateful = any(is_stateful(a) for a in [f for _, f in down] + [b_apply] + [f for _, f in decode])
+    return init, mark(apply, stateful)
 
 
 def RecurrentBlock(channels: int, *, kernel: int = 3, slope: float = 0.1, w_init=None):
