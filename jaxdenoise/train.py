@@ -226,30 +226,41 @@ def shard_batch(batch: Any, devices: list | None = None) -> Any:
 def load_validation(method: Any, data_dir: str | Path, spps: Any = None) -> list[dict]:
     """The validation frames of ``data_dir``: for every shot (`data.discover`) and sampling rate
     (all rates, or those in ``spps``), its first render in name order, read with the buffers
-    ``method`` uses. Returns ``[{"file", "spp", "buffers", "reference"}]``."""
+    ``method`` uses: ``{"file", "spp", "buffers", "reference"}``. A sequence (``frame_XXXX/`` shots)
+    gives one entry per sampling rate holding the whole video, ``{"file", "spp", "frames",
+    "references"}`` (its first render name at that rate in every frame), so that `validate` steps
+    recurrent and windowed methods through it."""
     from .api import prepare
-    from .data import discover
+    from .data import discover, renders_by_spp, sequences
     from .io import read_buffers, read_image
 
     wanted = None if spps is None else {int(s) for s in spps}
+
+    def load(path, ref):
+        buffers, _ = read_buffers(path)
+        if buffers.shape != ref.shape[:2]:
+            raise TrainError(f"{path}: size {buffers.shape} differs from its reference {ref.shape[:2]}")
+        try:
+            return prepare(method, buffers)
+        except ValueError as e:
+            raise TrainError(f"{path}: cannot validate {method.name} on it: {e}") from None
+
+    seqs, singles = sequences(discover(data_dir))
     frames = []
-    for shot in discover(data_dir):
-        seen: set = set()
+    for shot in singles:
         ref = None
-        for r in shot.renders:
-            if r.spp in seen or (wanted is not None and r.spp not in wanted):
-                continue
-            seen.add(r.spp)
+        for spp, renders in sorted(renders_by_spp(shot, wanted).items()):
             if ref is None:
                 ref = np.asarray(read_image(shot.reference), np.float32)[..., :3]
-            buffers, _ = read_buffers(r.path)
-            if buffers.shape != ref.shape[:2]:
-                raise TrainError(f"{r.path}: size {buffers.shape} differs from {shot.reference} {ref.shape[:2]}")
-            try:
-                buffers = prepare(method, buffers)
-            except ValueError as e:
-                raise TrainError(f"{r.path}: cannot validate {method.name} on it: {e}") from None
-            frames.append({"file": str(r.path), "spp": r.spp, "buffers": buffers, "reference": ref})
+            frames.append({"file": str(renders[0].path), "spp": spp, "buffers": load(renders[0].path, ref),
+                           "reference": ref})
+    for seq in seqs:
+        by_spp = [renders_by_spp(s, wanted) for s in seq.shots]
+        refs = [np.asarray(read_image(s.reference), np.float32)[..., :3] for s in seq.shots]
+        for spp in sorted(set.intersection(*(set(b) for b in by_spp))):
+            paths = [b[spp][0].path for b in by_spp]
+            frames.append({"file": str(seq.folder), "spp": spp, "references": refs,
+                           "frames": [load(p, r) for p, r in zip(paths, refs)]})
     if not frames:
         raise TrainError(f"{data_dir}: no validation render" + (f" at spp {sorted(wanted)}" if wanted else ""))
     return frames
@@ -257,15 +268,25 @@ def load_validation(method: Any, data_dir: str | Path, spps: Any = None) -> list
 
 def validate(method: Any, params: Any, frames: list[dict]) -> dict:
     """Mean RelMSE of ``method`` with ``params`` over ``frames`` (`load_validation`), overall and
-    per sampling rate. A non-finite output scores ``inf`` (never the best)."""
+    per sampling rate; a sequence entry runs through the sequence driver (state carried, neighbours
+    read) and counts each of its frames. A non-finite output scores ``inf`` (never the best)."""
     from . import metrics
     from .api import inference_fn
+    from .sequence import run
 
     fn = inference_fn(method)
     errs: dict[Any, list[float]] = {}
+
+    def score(out, ref, spp):
+        e = float(metrics.relmse(out, ref))
+        errs.setdefault(spp, []).append(e if math.isfinite(e) else math.inf)
+
     for f in frames:
-        e = float(metrics.relmse(fn(params, f["buffers"]), f["reference"]))
-        errs.setdefault(f["spp"], []).append(e if math.isfinite(e) else math.inf)
+        if "frames" in f:
+            for out, ref in zip(run(method, params, f["frames"]), f["references"]):
+                score(out, ref, f["spp"])
+        else:
+            score(fn(params, f["buffers"]), f["reference"], f["spp"])
     every = [e for es in errs.values() for e in es]
     return {"relmse": float(np.mean(every)),
             "per_spp": {str(k): float(np.mean(v))

@@ -264,3 +264,32 @@ def test_causal_method_through_driver_and_bench(tmp_path):
     t = {x["method"]: x for x in report["temporal"]}
     assert t["ema"]["kind"] == "causal" and t["ema"]["frames"] == 3
     assert t["ema"]["temporal_error"] < t["input"]["temporal_error"]
+
+
+def test_training_validation_steps_temporal_methods_through_sequences(tmp_path):
+    """A sequence in the validation folder is one entry run through the driver: the toy recurrent
+    method's score equals the mean RelMSE of its driven outputs (1e-6), not of per-frame applies."""
+    from jaxdenoise.io import write_buffers, write_image
+    from jaxdenoise.methods import _REGISTRY, register
+    from jaxdenoise.train import load_validation, validate
+
+    frames = _frames(3)
+    refs = [synthetic_frame(12, 12, seed=60 + i).color for i in range(3)]
+    for i, (f, r) in enumerate(zip(frames, refs)):
+        d = tmp_path / "val" / "seq" / f"frame_{i:04d}"
+        d.mkdir(parents=True)
+        write_image(d / "reference.exr", r)
+        write_buffers(d / "spp0004_00.exr", f)
+    register("ema", "fake_recurrent")
+    try:
+        m = get("ema")
+        entries = load_validation(m, tmp_path / "val")
+        assert len(entries) == 1 and len(entries[0]["frames"]) == 3
+        got = validate(m, {}, entries)["relmse"]
+        out = run_all(m, {}, frames)
+    finally:
+        _REGISTRY.pop("ema")
+    want = np.mean([float(metrics.relmse(o, r)) for o, r in zip(out, refs)])
+    assert got == pytest.approx(want, rel=1e-6)
+    per_frame = np.mean([float(metrics.relmse(np.asarray(f.color), r)) for f, r in zip(frames, refs)])
+    assert abs(got - per_frame) > 1e-4  # the state changed frames 1 and 2
