@@ -44,7 +44,11 @@ gradient's global norm (``clip_norm``). ``loss`` may return ``(scalar, aux)``; `
 replaces params leaves after each step (running statistics, `jaxdenoise.nn.state`). Data parallel: every batch is
 split over all local devices (`shard_batch`; params replicated, gradients reduced by XLA), so the
 same command uses every GPU (or ``--xla_force_host_platform_device_count`` CPU devices) JAX sees.
-This module imports without OpenImageIO, Mitsuba and jaxopt (EXRs are read only by ``make_dataset``
+Parameter groups: a method may declare ``param_groups(config) -> {group: (top-level params
+keys)}`` (and ``group_train(config) -> {group: TrainConfig overrides}``); the trainer then updates
+the groups in alternation, step t updating group t mod n with its own optimizer state and the
+group's loss ``loss(params, batch, config, group=name)`` (GradNet's autoencoder and G-branch,
+Guo 2019 Sec. 4.3). This module imports without OpenImageIO, Mitsuba and jaxopt (EXRs are read only by ``make_dataset``
 and validation).
 
 Non-finite losses or gradients skip the update (counted in the summary); ``max_bad_steps`` of them
@@ -156,13 +160,16 @@ def restore_like(template: Any, loaded: Any, *, where: str = "checkpoint") -> An
 
 
 @functools.lru_cache(maxsize=16)
-def _step_fn(method_name: str, config: Any, opt_key: tuple):
+def _step_fn(method_name: str, config: Any, opt_key: tuple, group: str | None = None,
+             keys: tuple[str, ...] | None = None):
     """The jitted training step, cached so repeated runs with the same settings compile once.
 
     ``loss`` may return a scalar or ``(scalar, aux)``; an ``aux`` dict with ``"updates"`` (a nested dict
     of params leaves, e.g. BatchNorm running statistics from the forward pass, `jaxdenoise.nn.state`)
     replaces those leaves after the optimizer step. The gradient is clipped to
-    ``clip_norm`` (global L2 norm) when set."""
+    ``clip_norm`` (global L2 norm) when set. With ``group`` (a parameter group, `param_groups`), the
+    step differentiates ``loss(..., group=group)`` with respect to the top-level params ``keys`` of
+    that group only and updates them with the group's optimizer state."""
     module = get(method_name, config).module
     fields = ("optimizer", "learning_rate", "adam_b1", "adam_b2", "schedule", "schedule_every",
               "schedule_factor", "clip_norm")
@@ -170,13 +177,15 @@ def _step_fn(method_name: str, config: Any, opt_key: tuple):
     _, opt_update = make_optimizer(tc)
     frozen = tuple(getattr(module, "FROZEN", ()))
 
-    def loss_fn(p, b):
-        out = module.loss(p, b, config)
+    def loss_fn(sub, p, b):
+        full = {**p, **sub} if group is not None else sub
+        out = module.loss(full, b, config) if group is None else module.loss(full, b, config, group=group)
         return (out[0], out[1]) if isinstance(out, tuple) else (out, None)
 
     @jax.jit
     def step_fn(p, s, b):
-        (value, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(p, b)
+        trained = {k: p[k] for k in keys} if group is not None else p
+        (value, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(trained, p, b)
         if tc.clip_norm is not None:
             from .solvers.optim import clip_by_global_norm
 
@@ -184,7 +193,9 @@ def _step_fn(method_name: str, config: Any, opt_key: tuple):
         finite = jnp.isfinite(value)
         for g in jax.tree_util.tree_leaves(grads):
             finite = finite & jnp.all(jnp.isfinite(g))
-        new_p, new_s = opt_update(grads, s, p)
+        new_p, new_s = opt_update(grads, s, trained)
+        if group is not None:
+            new_p = {**p, **new_p}
         if frozen:
             new_p = {**new_p, **{k: p[k] for k in frozen}}
         updates = aux.get("updates") if isinstance(aux, dict) else None
@@ -198,6 +209,36 @@ def _step_fn(method_name: str, config: Any, opt_key: tuple):
         return jax.tree_util.tree_map(keep, new_p, p), jax.tree_util.tree_map(keep, new_s, s), value, finite
 
     return step_fn
+
+
+def _param_groups(module: Any, config: Any, params: Any, tc: TrainConfig) -> dict | None:
+    """``{group: (top-level params keys, TrainConfig)}`` when the method declares
+    ``param_groups(config)`` (and optionally ``group_train(config)``: per-group TrainConfig overrides,
+    e.g. its own optimizer and step size); None otherwise. Every group names existing, non-FROZEN
+    keys, and no key is in two groups."""
+    fn = getattr(module, "param_groups", None)
+    if fn is None:
+        return None
+    declared = {str(g): tuple(keys) for g, keys in fn(config).items()}
+    frozen = set(getattr(module, "FROZEN", ()))
+    seen: dict[str, str] = {}
+    for g, keys in declared.items():
+        for k in keys:
+            if k not in params or k in frozen:
+                raise TrainError(f"parameter group '{g}' names '{k}', which is not a trainable top-level params entry "
+                                 f"(entries: {sorted(params)}, frozen: {sorted(frozen)})")
+            if k in seen:
+                raise TrainError(f"params entry '{k}' is in two parameter groups ('{seen[k]}' and '{g}')")
+            seen[k] = g
+    overrides = getattr(module, "group_train", lambda c: {})(config)
+    out = {}
+    for g, keys in declared.items():
+        try:
+            gtc = dataclasses.replace(tc, **overrides.get(g, {}))
+        except TypeError as e:
+            raise TrainError(f"group_train['{g}']: {e}") from None
+        out[g] = (keys, gtc)
+    return out
 
 
 def shard_batch(batch: Any, devices: list | None = None) -> Any:
@@ -360,8 +401,11 @@ def train(method_name: str, data_dir: str | Path, out_dir: str | Path, *, resume
             raise TrainError(f"{init_from}: weights were trained with config {meta['config']}; this run is "
                              f"{method_name!r} with {cfg_dict}")
         params = restore_like(params, loaded, where=str(init_from))
-    opt_init, opt_update = make_optimizer(tc)
-    opt_state = opt_init(params)
+    groups = _param_groups(module, method.config, params, tc)
+    if groups is None:
+        opt_state = make_optimizer(tc)[0](params)
+    else:
+        opt_state = {g: make_optimizer(gtc)[0]({k: params[k] for k in keys}) for g, (keys, gtc) in groups.items()}
     start, history, bad_total, val_history = 0, [], 0, []
     ckpt_dir = out_dir / CHECKPOINT_DIR
     if resume and (ckpt_dir / checkpoint.PARAMS_FILE).is_file():
@@ -378,7 +422,12 @@ def train(method_name: str, data_dir: str | Path, out_dir: str | Path, *, resume
     best = None
     if val_frames is not None and resume and (best_dir / checkpoint.CONFIG_FILE).is_file():
         best = checkpoint.load(best_dir)[1].get("validation")
-    step_fn = _step_fn(method_name, method.config, _optimizer_key(tc))
+    if groups is None:
+        step_fn = _step_fn(method_name, method.config, _optimizer_key(tc))
+    else:
+        order = list(groups)
+        group_fns = {g: _step_fn(method_name, method.config, _optimizer_key(gtc), g, keys)
+                     for g, (keys, gtc) in groups.items()}
 
     def save(step: int) -> None:
         checkpoint.save(ckpt_dir, {"params": params, "opt_state": opt_state}, method.config,
@@ -416,7 +465,11 @@ def train(method_name: str, data_dir: str | Path, out_dir: str | Path, *, resume
         for step in range(start, tc.steps):
             rng = np.random.default_rng([int(seed), step])
             b = shard_batch(module.batch(dataset, step, method.config, rng))
-            params, opt_state, value, ok = step_fn(params, opt_state, b)
+            if groups is None:
+                params, opt_state, value, ok = step_fn(params, opt_state, b)
+            else:  # parameter groups in alternation: step t updates group t mod (number of groups)
+                g = order[step % len(order)]
+                params, opt_state[g], value, ok = group_fns[g](params, opt_state[g], b)
             value = float(value)
             if bool(ok):
                 bad_run = 0

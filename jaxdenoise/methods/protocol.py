@@ -11,6 +11,9 @@ members or none (`check_module` says which are incomplete):
   7-frame filter): ``window``, ``prepare_frame``, ``apply_window``. The driver runs
   ``prepare_frame`` once per frame and emits frame ``t`` once frame ``t + ahead`` has arrived.
 - `Trainable`: ``loss``, ``make_dataset``, ``batch`` (`jaxdenoise.train`).
+- `Grouped`: ``param_groups`` (a trainable method whose parameter groups the trainer updates in
+  alternation, each with its own optimizer; ``loss`` then takes ``group=``; ``group_train`` gives
+  per-group TrainConfig overrides).
 
 Plain attributes, all optional: ``required(config)`` (the subset of ``needs`` a frame must have;
 default all of it), ``JITTABLE`` (False for foreign code such as OIDN), ``requirements()`` (why the
@@ -26,7 +29,7 @@ from __future__ import annotations
 from types import ModuleType
 from typing import Any, Protocol, runtime_checkable
 
-__all__ = ["MethodModule", "Causal", "Windowed", "Trainable", "check_module", "HOOK_GROUPS"]
+__all__ = ["MethodModule", "Causal", "Windowed", "Trainable", "Grouped", "check_module", "HOOK_GROUPS"]
 
 
 @runtime_checkable
@@ -89,7 +92,16 @@ class Trainable(Protocol):
         """The mini-batch of ``step`` (``rng`` is seeded from (seed, step): resumes draw the same)."""
 
 
-HOOK_GROUPS: dict[str, type] = {"causal": Causal, "windowed": Windowed, "trainable": Trainable}
+@runtime_checkable
+class Grouped(Protocol):
+    """A trainable method with parameter groups updated in alternation (`jaxdenoise.train`)."""
+
+    def param_groups(self, config: Any) -> dict:
+        """``{group name: top-level params keys}``; step t updates group t mod n, with
+        ``loss(params, batch, config, group=name)`` and its own optimizer state."""
+
+
+HOOK_GROUPS: dict[str, type] = {"causal": Causal, "windowed": Windowed, "trainable": Trainable, "grouped": Grouped}
 
 
 def _members(proto: type) -> list[str]:
