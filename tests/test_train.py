@@ -272,7 +272,7 @@ def test_parameter_groups_alternate_with_their_own_optimizers(tmp_path):
 
     register("groups", "fake_groups")
     try:
-        one = train("groups", tmp_path, tmp_path / "one", steps=1, progress=False, optimizer="adam",
+        train("groups", tmp_path, tmp_path / "one", steps=1, progress=False, optimizer="adam",
                     learning_rate=1e-2)
         p1, _ = checkpoint.load(tmp_path / "one" / "weights")
         # step 0 moved a only, by Adam's first step (= lr in magnitude); b untouched
