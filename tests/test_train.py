@@ -294,3 +294,19 @@ def test_parameter_groups_alternate_with_their_own_optimizers(tmp_path):
         assert float(jnp.sum(jnp.abs(jnp.asarray(a["norm"])))) == 0.0  # FROZEN: never trained
     finally:
         _REGISTRY.pop("groups")
+
+
+def test_small_conv_net_overfits_four_crops(tmp_path):
+    """A small U-Net (jaxdenoise.nn) through the generic trainer memorizes 4 noisy -> clean crops:
+    the loss falls by more than 100x in 400 Adam steps (measured: 166x)."""
+    from jaxdenoise.methods import _REGISTRY, register
+
+    register("convnet", "fake_convnet")
+    try:
+        train("convnet", tmp_path, tmp_path / "run", steps=400, progress=False, optimizer="adam",
+              learning_rate=3e-3, checkpoint_every=400)
+    finally:
+        _REGISTRY.pop("convnet")
+    meta = checkpoint.load(tmp_path / "run" / "checkpoint")[1]
+    first, last = meta["history"][0], float(np.mean(meta["history"][-5:]))
+    assert last < first / 100, (first, last)
