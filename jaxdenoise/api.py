@@ -40,10 +40,28 @@ def resolve(method: str | Method, weights: str | os.PathLike | None = None) -> t
             f"method '{m.name}': no weights at {folder} (expected {checkpoint.PARAMS_FILE}); "
             f"train them with `jaxdenoise train {m.name} --data DIR --out RUN_DIR` and pass --weights RUN_DIR")
     params, meta = checkpoint.load(folder)
+    trained_for = meta.get("method")
+    if trained_for is not None and trained_for != m.name:
+        # a variant of the same module (lbf / lbf-nlm) may load its sibling's weights; nothing else
+        if trained_for not in _registered() or get(trained_for).module is not m.module:
+            raise checkpoint.WeightsError(f"{folder}: weights are for method '{trained_for}', not '{m.name}'")
     if meta.get("config"):
-        m = Method(name=m.name, module=m.module,
-                   config=checkpoint.config_from_dict(m.module.Config, meta["config"]))
+        try:
+            config = checkpoint.config_from_dict(m.module.Config, meta["config"])
+        except (TypeError, ValueError) as e:
+            raise checkpoint.WeightsError(f"{folder}: config.json does not fit method '{m.name}' ({e})") from None
+        m = Method(name=m.name, module=m.module, config=config)
+    # The structure, shapes and values the method's init gives: a damaged or foreign file fails here,
+    # by name, not deep inside the method.
+    template = m.init(jax.random.PRNGKey(0))
+    params = checkpoint.restore_like(template, params, where=str(folder), finite=True)
     return m, jax.tree_util.tree_map(np.asarray, params)
+
+
+def _registered() -> set[str]:
+    from .methods import names
+
+    return set(names())
 
 
 def check_finite(buffers: Buffers, names, *, where: str | None = None) -> None:

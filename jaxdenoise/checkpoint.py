@@ -5,6 +5,11 @@ lists/tuples, stored with integer keys marked ``#i``) of arrays, as every method
 An empty dict or list (a parameter-free layer) is kept as a zero-size marker entry ``#{}`` / ``#[]``,
 so the structure round-trips exactly.
 Both files are written atomically (`fsutil.atomic_path`).
+
+Reading never trusts the files: `load` refuses a parameter file that is not a valid ``.npz`` or
+that holds a pickled object, and a ``config.json`` that is not JSON; `restore_like` refuses missing,
+unexpected, misshapen and (for weights) non-finite entries against the structure the method's
+``init`` gives. Every refusal is a `WeightsError` naming the folder and what is wrong.
 """
 from __future__ import annotations
 
@@ -20,6 +25,10 @@ from .fsutil import atomic_path, write_json
 
 PARAMS_FILE = "params.npz"
 CONFIG_FILE = "config.json"
+
+
+class WeightsError(ValueError):
+    """A weights folder or checkpoint that cannot be used (the message names the folder and why)."""
 
 
 def flatten(tree: Any, prefix: str = "") -> dict[str, np.ndarray]:
@@ -114,8 +123,68 @@ def load(directory: str | os.PathLike) -> tuple[Any, dict]:
     pfile = directory / PARAMS_FILE
     if not pfile.is_file():
         raise FileNotFoundError(f"{pfile}: no parameter file (expected {PARAMS_FILE} beside {CONFIG_FILE})")
-    with np.load(pfile, allow_pickle=False) as data:
-        params = unflatten({k: data[k] for k in data.files})
+    try:
+        with np.load(pfile, allow_pickle=False) as data:
+            flat = {}
+            for k in data.files:
+                try:
+                    flat[k] = data[k]
+                except ValueError as e:  # an object array: loading it would unpickle
+                    raise WeightsError(f"{pfile}: entry '{k}' is a pickled object ({e}); weights are numeric "
+                                       f"arrays only, refused") from None
+    except WeightsError:
+        raise
+    except Exception as e:  # noqa: BLE001 - zipfile / numpy raise many types for a damaged file
+        raise WeightsError(f"{pfile}: not a readable .npz parameter file ({type(e).__name__}: {e})") from None
+    bad = sorted(k for k, v in flat.items() if v.dtype.kind not in "biuf")
+    if bad:
+        raise WeightsError(f"{pfile}: entries {bad} are not numeric arrays (dtype "
+                           f"{flat[bad[0]].dtype}); refused")
+    params = unflatten(flat)
     cfile = directory / CONFIG_FILE
-    meta = json.loads(cfile.read_text()) if cfile.is_file() else {}
+    try:
+        meta = json.loads(cfile.read_text()) if cfile.is_file() else {}
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise WeightsError(f"{cfile}: not valid JSON ({e})") from None
+    if not isinstance(meta, dict) or not isinstance(meta.get("config", {}), dict):
+        raise WeightsError(f"{cfile}: expected an object with a 'config' object")
     return params, meta
+
+
+def restore_like(template: Any, loaded: Any, *, where: str = "checkpoint", finite: bool = False) -> Any:
+    """Rebuild ``loaded`` (as returned by `load`) in the exact pytree structure of ``template``
+    (tuples, empty containers and ``None`` included), checking every entry's presence and shape, and
+    with ``finite`` that it holds no NaN/Inf; the dtypes become the template's."""
+    import jax.numpy as jnp
+
+    flat = flatten(loaded)
+    used: set[str] = set()
+
+    def rec(node: Any, prefix: str) -> Any:
+        if isinstance(node, dict):
+            return {k: rec(v, f"{prefix}{k}/") for k, v in node.items()}
+        if isinstance(node, (list, tuple)):
+            items = [rec(v, f"{prefix}#{i}/") for i, v in enumerate(node)]
+            if isinstance(node, tuple) and hasattr(node, "_fields"):
+                return type(node)(*items)
+            return type(node)(items)
+        if node is None:
+            return None
+        key = prefix.rstrip("/")
+        if key not in flat:
+            raise WeightsError(f"{where}: entry '{key}' is missing")
+        value = flat[key]
+        if tuple(np.shape(value)) != tuple(np.shape(node)):
+            raise WeightsError(f"{where}: entry '{key}' has shape {np.shape(value)}; expected {np.shape(node)}")
+        if finite:
+            n_bad = int(np.size(value) - np.isfinite(value).sum())
+            if n_bad:
+                raise WeightsError(f"{where}: entry '{key}' has {n_bad} NaN/Inf value(s)")
+        used.add(key)
+        return jnp.asarray(value, dtype=jnp.asarray(node).dtype)
+
+    out = rec(template, "")
+    extra = sorted(set(flat) - used)
+    if extra:
+        raise WeightsError(f"{where}: unexpected entries {extra[:5]}{'...' if len(extra) > 5 else ''}")
+    return out

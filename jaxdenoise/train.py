@@ -128,35 +128,12 @@ def _optimizer_key(tc: TrainConfig) -> tuple:
 
 
 def restore_like(template: Any, loaded: Any, *, where: str = "checkpoint") -> Any:
-    """Rebuild ``loaded`` (as returned by `checkpoint.load`) in the exact pytree structure of
-    ``template`` (tuples, empty containers and ``None`` included), checking every shape."""
-    flat = checkpoint.flatten(loaded)
-    used: set[str] = set()
-
-    def rec(node: Any, prefix: str) -> Any:
-        if isinstance(node, dict):
-            return {k: rec(v, f"{prefix}{k}/") for k, v in node.items()}
-        if isinstance(node, (list, tuple)):
-            items = [rec(v, f"{prefix}#{i}/") for i, v in enumerate(node)]
-            if isinstance(node, tuple) and hasattr(node, "_fields"):
-                return type(node)(*items)
-            return type(node)(items)
-        if node is None:
-            return None
-        key = prefix.rstrip("/")
-        if key not in flat:
-            raise TrainError(f"{where}: entry '{key}' is missing")
-        value = flat[key]
-        if tuple(np.shape(value)) != tuple(np.shape(node)):
-            raise TrainError(f"{where}: entry '{key}' has shape {np.shape(value)}; expected {np.shape(node)}")
-        used.add(key)
-        return jnp.asarray(value, dtype=jnp.asarray(node).dtype)
-
-    out = rec(template, "")
-    extra = sorted(set(flat) - used)
-    if extra:
-        raise TrainError(f"{where}: unexpected entries {extra[:5]}{'...' if len(extra) > 5 else ''}")
-    return out
+    """`checkpoint.restore_like` with its error as a `TrainError` (a checkpoint that does not fit
+    the run)."""
+    try:
+        return checkpoint.restore_like(template, loaded, where=where)
+    except checkpoint.WeightsError as e:
+        raise TrainError(str(e)) from None
 
 
 @functools.lru_cache(maxsize=16)

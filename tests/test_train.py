@@ -11,7 +11,7 @@ import pytest
 
 from jaxdenoise import checkpoint
 from jaxdenoise.methods import lbf
-from jaxdenoise.train import TrainError, restore_like, train
+from jaxdenoise.train import TrainError, restore_like, train  # restore_like: checkpoint's, as TrainError
 
 from conftest import synthetic_frame
 
