@@ -360,8 +360,14 @@ def plot(rows: list[dict], path: str | os.PathLike) -> Path:
     fig, ax = plt.subplots(figsize=(6.5, 4.5), dpi=120)
     methods = list(dict.fromkeys(r["method"] for r in rows))
     floor = 1e-6  # the raw input's denoise time is ~0; keep it on a log axis
+    dropped = []
     for method in methods:
-        rs = [r for r in rows if r["method"] == method]
+        # A non-finite error (a method's output overflowed) cannot sit on a log axis; the table
+        # keeps it, the legend says the point is left out.
+        rs = [r for r in rows if r["method"] == method and np.isfinite(r["relmse"])]
+        dropped += [f"{method} @ {r['spp']}" for r in rows if r["method"] == method and not np.isfinite(r["relmse"])]
+        if not rs:
+            continue
         xs = [max(floor, r["seconds"] + (r["render_seconds"] if total_time else 0.0)) for r in rs]
         ys = [max(r["relmse"], 1e-12) for r in rs]
         if method == "input" and total_time and len(rs) > 1:
@@ -382,6 +388,8 @@ def plot(rows: list[dict], path: str | os.PathLike) -> Path:
     ax.set_xlabel("render + denoise time (s)" if total_time else "denoise time (s, median)")
     ax.set_ylabel("RelMSE")
     ax.grid(True, which="both", alpha=0.3)
+    if dropped:
+        ax.plot([], [], " ", label="not finite (table only): " + ", ".join(dropped))
     ax.legend(fontsize=7)
     ax.set_title("error against run time" + ("" if total_time else " (render times unknown)"), fontsize=9)
     fig.tight_layout()

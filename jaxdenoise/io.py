@@ -44,16 +44,47 @@ class ExrError(ValueError):
     """A file is not a valid frame under the EXR contract (the message names file and channel)."""
 
 
+def _oiio_message(source: Any = None) -> str:
+    """OpenImageIO's last error message. A corrupt header can put bytes that are not UTF-8 into it,
+    which the Python binding fails to decode: say so instead of letting UnicodeDecodeError escape."""
+    try:
+        return (source.geterror() if source is not None else oiio.geterror()).strip()
+    except UnicodeDecodeError as e:
+        return f"its error message holds bytes that are not UTF-8 ({e.reason} at byte {e.start}): a corrupt header"
+
+
 def _open(path: Path):
     if not path.exists():
         raise ExrError(f"{path}: no such file")
-    inp = oiio.ImageInput.open(str(path))
+    try:
+        inp = oiio.ImageInput.open(str(path))
+    except UnicodeDecodeError as e:
+        raise ExrError(f"{path}: the header holds text that is not UTF-8 ({e.reason} at byte {e.start}); "
+                       f"the file is corrupt") from None
     if inp is None:
-        raise ExrError(f"{path}: cannot be read as an image ({oiio.geterror().strip() or 'unknown format'})")
+        raise ExrError(f"{path}: cannot be read as an image ({_oiio_message() or 'unknown format'})")
     if inp.format_name() != "openexr":
         inp.close()
         raise ExrError(f"{path}: is a {inp.format_name()} file; expected OpenEXR")
     return inp
+
+
+def _spec(path: Path, inp) -> tuple[Any, list[str], dict[str, Any]]:
+    """(spec, channel names, attributes) with undecodable header text reported as a corrupt header."""
+    try:
+        spec = inp.spec()
+        return spec, list(spec.channelnames), _attrs(spec)
+    except UnicodeDecodeError as e:
+        raise ExrError(f"{path}: a header attribute or channel name is not UTF-8 text ({e.reason} at byte "
+                       f"{e.start}); the header is corrupt") from None
+
+
+def _memory_limit() -> int:
+    """Bytes a single frame may take: half the machine's physical memory."""
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") // 2
+    except (ValueError, OSError):
+        return 8 << 30
 
 
 def read_header(path: str | os.PathLike) -> dict[str, Any]:
@@ -61,9 +92,8 @@ def read_header(path: str | os.PathLike) -> dict[str, Any]:
     path = Path(path)
     inp = _open(path)
     try:
-        spec = inp.spec()
-        attrs = _attrs(spec)
-        attrs["channels"] = list(spec.channelnames)
+        spec, names, attrs = _spec(path, inp)
+        attrs["channels"] = names
         attrs["width"], attrs["height"] = spec.width, spec.height
         return attrs
     finally:
@@ -82,16 +112,20 @@ def _attrs(spec) -> dict[str, Any]:
 def _read_pixels(path: Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     inp = _open(path)
     try:
-        spec = inp.spec()
-        names = list(spec.channelnames)
+        spec, names, attrs = _spec(path, inp)
         if len(set(names)) != len(names):
             raise ExrError(f"{path}: duplicate channel names {names}")
+        # Refuse before allocating: a corrupt or hostile header can claim any size.
+        need = int(spec.width) * int(spec.height) * int(spec.nchannels) * 4
+        if spec.width <= 0 or spec.height <= 0 or need > _memory_limit():
+            raise ExrError(f"{path}: the header claims {spec.width}x{spec.height} pixels x {spec.nchannels} "
+                           f"channel(s) = {need / 2**30:.1f} GiB as float32, over this machine's limit of "
+                           f"{_memory_limit() / 2**30:.1f} GiB (half its memory); refusing to allocate")
         data = inp.read_image(0, 0, 0, spec.nchannels, "float")
         if data is None:
             raise ExrError(f"{path}: pixel data cannot be read, the file is truncated or corrupt "
-                           f"({inp.geterror().strip() or oiio.geterror().strip()})")
+                           f"({_oiio_message(inp) or _oiio_message()})")
         data = np.asarray(data, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
-        attrs = _attrs(spec)
     finally:
         inp.close()
     return {n: data[..., i] for i, n in enumerate(names)}, attrs

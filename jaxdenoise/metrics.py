@@ -69,8 +69,10 @@ def _check_eps(fn: str, eps: Any) -> None:
 # -- RelMSE / MSE ----------------------------------------------------------------------------------
 @jax.jit
 def _relmse_map(x, ref, eps):
-    # eps keeps the denominator >= eps where the reference is black (the papers' 0.01).
-    return jnp.square(x - ref) / (jnp.square(ref) + eps)
+    # eps keeps the denominator >= eps where the reference is black (the papers' 0.01). The ratio is
+    # formed before squaring, with hypot(ref, sqrt(eps)) = sqrt(ref^2 + eps): squaring a radiance
+    # above ~1.8e19 would overflow float32 and turn a valid (huge) reference into inf / inf = NaN.
+    return jnp.square((x - ref) / jnp.hypot(ref, jnp.sqrt(jnp.asarray(eps, ref.dtype))))
 
 
 def relmse_per_image(x: Any, ref: Any, eps: float = RELMSE_EPS) -> jnp.ndarray:
