@@ -122,6 +122,22 @@ def tampered(work: Path) -> list[dict]:
             case("config of another method", other_config)]
 
 
+def interrupted() -> list[dict]:
+    """Run the SIGKILL-and-resume cases (tests/test_interrupts.py, default and slow) and return one
+    row per case: data_gen dataset and training killed at fractions of their run time and resumed
+    (bit-identical dataset; weights within 1e-6), bench killed while writing (no partial report)."""
+    import subprocess
+
+    r = subprocess.run([sys.executable, "-m", "pytest", "-q", "-rA", "-p", "no:cacheprovider", "-m", "slow or not slow",
+                        str(ROOT / "tests" / "test_interrupts.py")], cwd=ROOT, capture_output=True, text=True)
+    rows = []
+    for line in r.stdout.splitlines():
+        parts = line.split(" ", 1)
+        if parts[0] in ("PASSED", "FAILED", "ERROR") and len(parts) == 2:
+            rows.append({"case": parts[1].split("::", 1)[-1].split(" - ")[0], "result": parts[0]})
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", default="1,2,3")
@@ -141,6 +157,7 @@ def main() -> None:
                                | {"seed": seed})
             print(f"seed {seed}: {len(cases)} cases ({time.time() - t0:.0f} s)", flush=True)
         weights = tampered(tmp / "tampered")
+    interrupts = interrupted()
     table = collections.defaultdict(collections.Counter)
     for r in results:
         table[(r["reader"], r["kind"])][r["outcome"]] += 1
@@ -151,6 +168,7 @@ def main() -> None:
     totals = collections.Counter(r["outcome"] for r in results)
     out = Path(args.out)
     report = {"command": "python " + " ".join(sys.argv), "seconds": time.time() - t0, "cases": len(results),
+              "interrupts": interrupts,
               "totals": dict(totals), "by_reader_kind": {f"{a}|{b}": dict(c) for (a, b), c in table.items()},
               "messages": {k: dict(v) for k, v in messages.items()}, "tampered_weights": weights,
               "slowest_case_s": max(r["seconds"] for r in results)}
@@ -179,9 +197,18 @@ def main() -> None:
               "|---|---|---|"]
     for w in weights:
         lines.append(f"| {w['case']} | {'yes' if w['refused'] else '**no**'} | `{w['message']}` |")
-    lines += ["", "Not measured yet (reliability issue, still open): interrupted `data_gen dataset` / `train` / "
-              "`bench` runs killed with SIGKILL and resumed; a frame too large for a JAX method refused with "
-              "XLA's estimate.", ""]
+    survived = sum(r["result"] == "PASSED" for r in interrupts)
+    lines += ["", f"## Interrupted work (SIGKILL, then resumed): {survived} of {len(interrupts)} cases survived", "",
+              "`tests/test_interrupts.py` (default and `slow`): `python -m data_gen dataset` killed at 40-80 % of "
+              "its run time then rerun: bit-identical EXRs to an uninterrupted run, and every file present "
+              "under its final name complete; training killed at 50-90 % and resumed: weights equal within "
+              "1e-6; `bench` killed at 50 / 80 / 95 %: no partial report file.", "",
+              "| case | result |", "|---|---|"]
+    lines += [f"| {r['case']} | {r['result']} |" for r in interrupts]
+    lines += ["", "Resource limits: a header claiming 10^6 x 10^6 pixels is refused before allocation "
+              "(OpenImageIO's own size limit, then ours: half the machine's memory), see the *oversized* rows; "
+              "a frame whose compiled program needs more memory than is available is refused with XLA's "
+              "estimate before it runs (`jaxdenoise.api.Compiled`, tested in tests/test_api.py).", ""]
     write_text(out / "reliability.md", "\n".join(lines) + "\n")
     print(f"reliability: {len(results)} cases, totals {dict(totals)}; tampered weights refused "
           f"{sum(w['refused'] for w in weights)}/{len(weights)} -> {out / 'reliability.md'}")

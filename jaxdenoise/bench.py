@@ -77,31 +77,15 @@ def _block(x):
 
 
 def time_method(m: Method, params: Any, buffers: Buffers, *, runs: int = MIN_RUNS,
-                cache: dict | None = None, where: str | None = None) -> dict[str, Any]:
+                where: str | None = None) -> dict[str, Any]:
     """Run ``m`` on one frame by the protocol; returns image, seconds, compile_seconds,
     rss_peak_bytes, xla_bytes (module docstring)."""
     if runs < MIN_RUNS:
         raise ValueError(f"runs={runs}; the protocol needs at least {MIN_RUNS} timed runs")
     buffers = prepare(m, buffers, where=where)
     buffers = jax.device_put(buffers) if m.jittable else buffers
-    compile_s = 0.0
-    xla_bytes = None
-    if m.jittable:
-        key = (m.name, m.config, jax.tree_util.tree_structure(buffers),
-               tuple(np.shape(x) for x in jax.tree_util.tree_leaves(buffers)))
-        if cache is not None and key in cache:
-            compiled, xla_bytes = cache[key]
-        else:
-            t0 = time.perf_counter()
-            compiled = inference_fn(m).lower(params, buffers).compile()
-            compile_s = time.perf_counter() - t0
-            ma = compiled.memory_analysis()
-            xla_bytes = (ma.argument_size_in_bytes + ma.output_size_in_bytes + ma.temp_size_in_bytes) if ma else None
-            if cache is not None:
-                cache[key] = (compiled, xla_bytes)
-        fn: Callable = compiled
-    else:
-        fn = inference_fn(m)
+    fn: Callable = inference_fn(m)
+    compile_s, xla_bytes = fn.compile(params, buffers) if m.jittable else (0.0, None)
     times = []
     # The resident-set window opens before the warm-up: foreign code allocates its buffers there.
     with _RssPeak() as rss:
@@ -177,7 +161,6 @@ def run(data_dir: str | os.PathLike, methods: Iterable[str], out_dir: str | os.P
               "jax": jax.__version__, "device": str(jax.devices()[0]), "cpu_count": os.cpu_count()}
     records: list[dict] = []
     temporal: list[dict] = []
-    cache: dict = {}
     total = (sum(len(s.renders) for s in singles) + sum(len(q.render_names()) for q in seqs)) * len(resolved)
     bar = tqdm(total=total, desc="bench", unit="run", disable=not progress, leave=False)
     for shot in singles:
@@ -194,7 +177,12 @@ def run(data_dir: str | os.PathLike, methods: Iterable[str], out_dir: str | os.P
                                     "reason": f"frame lacks buffer(s) {missing}"})
                     bar.update(1)
                     continue
-                r = time_method(m, params, buffers, runs=runs, cache=cache, where=str(render.path))
+                try:
+                    r = time_method(m, params, buffers, runs=runs, where=str(render.path))
+                except MethodError as e:  # e.g. the frame needs more memory than there is (XLA's estimate)
+                    skipped.append({"method": name, "file": str(render.path.relative_to(data_dir)), "reason": str(e)})
+                    bar.update(1)
+                    continue
                 records.append(_record(shot, render, name, r, r["image"], ref, data_dir))
                 bar.update(1)
     for seq in seqs:

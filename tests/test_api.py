@@ -71,3 +71,27 @@ def test_oidn_missing_package_is_clear(monkeypatch):
     monkeypatch.setattr(builtins, "__import__", fake)
     with pytest.raises(MethodError, match=r"needs the pyoidn package \(pip install -e '\.\[oidn\]'\)"):
         jd.denoise(synthetic_frame(), method="oidn")
+
+
+def test_frame_too_large_for_memory_is_refused_with_xla_estimate(monkeypatch):
+    """The program is compiled before it runs; when XLA's estimate exceeds the available memory the
+    call fails with the estimate, before any allocation (the limit is lowered here to 1 KiB)."""
+    from jaxdenoise import api
+
+    monkeypatch.setattr(api, "available_memory", lambda: 1024)
+    b = synthetic_frame(h=31, w=17)  # a signature no other test compiled
+    with pytest.raises(MethodError, match=r"method 'gaussian': this input \(\(31, 17\)\) needs .* GiB by XLA's "
+                                          r"estimate .* more than the 0.0 GiB available"):
+        jd.denoise(b, method="gaussian")
+    monkeypatch.undo()
+    assert jd.denoise(b, method="gaussian").shape == (31, 17, 3)
+
+
+def test_compiled_once_per_signature():
+    from jaxdenoise.api import inference_fn
+
+    fn = inference_fn(get("gaussian"))
+    b = synthetic_frame(h=29, w=13)
+    first = fn.compile({}, b)
+    again = fn.compile({}, b)
+    assert first[0] > 0 and again == (0.0, first[1]) and first[1] > 0  # cached: no second compile

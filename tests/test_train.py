@@ -19,16 +19,14 @@ CFG = lbf.Config(radius=2, prefilter=False, spike_removal=False, features=("norm
                  train_spps=(4, 8), train_crop=8, train_scenes_per_step=2)
 
 
-@pytest.fixture(scope="module")
-def dataset(tmp_path_factory):
-    """Two 10x10 scenes, spp 4 and 8, two noise instances each."""
+def write_rooms(root):
+    """Two 10x10 scenes, spp 4 and 8, two noise instances each (also used by tests/test_interrupts.py)."""
     from jaxdenoise.io import write_buffers, write_image
 
-    root = tmp_path_factory.mktemp("rooms")
     rng = np.random.default_rng(0)
     for s in range(2):
         d = root / f"scene_{s:03d}"
-        d.mkdir()
+        d.mkdir(parents=True)
         yy, xx = np.mgrid[0:10, 0:10]
         ref = np.stack([0.2 + 0.05 * xx, 0.3 + 0.02 * yy, 0.5 + 0 * xx], -1).astype(np.float32) * (1 + s)
         write_image(d / "reference.exr", ref)
@@ -39,6 +37,11 @@ def dataset(tmp_path_factory):
                 col = np.maximum(ref * (1 + rng.normal(size=ref.shape) / np.sqrt(spp)), 0).astype(np.float32)
                 write_buffers(d / f"spp{spp:04d}_{i:02d}.exr", b.replace(color=col, color_var=ref ** 2 / spp))
     return root
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    return write_rooms(tmp_path_factory.mktemp("rooms"))
 
 
 def _params(run):

@@ -1,0 +1,153 @@
+"""Interrupted work resumed (reliability issue): `python -m data_gen dataset`, training and `bench`
+are killed with SIGKILL at random moments, then run again. No half-written file is ever visible
+under its final name, and the resumed result equals an uninterrupted run (datasets bit for bit,
+weights within a stated tolerance). One kill time each in the default suite; several under `slow`."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+ENV = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": str(ROOT / "tests") + os.pathsep + os.environ.get("PYTHONPATH", "")}
+
+
+def _kill_after(cmd: list[str], seconds: float, cwd=ROOT) -> int | None:
+    """Start ``cmd``, SIGKILL it after ``seconds`` (None if it finished first: its return code)."""
+    p = subprocess.Popen(cmd, cwd=cwd, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        return p.wait(timeout=seconds)
+    except subprocess.TimeoutExpired:
+        p.send_signal(signal.SIGKILL)
+        p.wait()
+        return None
+
+
+def _run(cmd: list[str]) -> float:
+    """Run ``cmd`` to completion; returns its wall time (kill moments are fractions of it)."""
+    t0 = time.perf_counter()
+    r = subprocess.run(cmd, cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=900)
+    assert r.returncode == 0, r.stderr[-2000:]
+    return time.perf_counter() - t0
+
+
+def _exr_files(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*.exr"))}
+
+
+def _all_complete(folder: Path) -> None:
+    """Every file under its final name reads completely (EXR) or parses (JSON)."""
+    from jaxdenoise.io import read_buffers
+
+    for p in folder.rglob("*.exr"):
+        read_buffers(p)
+    for p in folder.rglob("*.json"):
+        json.loads(p.read_text())
+
+
+DATASET = [sys.executable, "-m", "data_gen", "dataset", "--family", "mixed", "--count", "2", "--res", "8",
+           "--spp", "1,2", "--instances", "2", "--ref-spp", "4", "--max-depth", "3", "--no-progress"]
+
+
+@pytest.fixture(scope="module")
+def dataset_reference(tmp_path_factory):
+    out = tmp_path_factory.mktemp("full") / "d"
+    return out, _run(DATASET + ["--out", str(out)])
+
+
+def _dataset_case(tmp_path, reference, fraction):
+    ref_dir, duration = reference
+    out = tmp_path / f"d_{fraction:.2f}"
+    rc = _kill_after(DATASET + ["--out", str(out)], fraction * duration)
+    assert rc is None, "the run finished before the kill; the case tests nothing"
+    if out.exists():
+        _all_complete(out)  # nothing half-written under a final name
+    _run(DATASET + ["--out", str(out)])
+    assert _exr_files(out) == _exr_files(ref_dir)  # bit for bit
+
+
+@pytest.mark.mitsuba
+def test_dataset_killed_and_resumed_is_identical(tmp_path, dataset_reference):
+    _dataset_case(tmp_path, dataset_reference, 0.7)
+
+
+@pytest.mark.slow
+@pytest.mark.mitsuba
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_dataset_killed_at_random_moments(tmp_path, dataset_reference, seed):
+    _dataset_case(tmp_path, dataset_reference, float(np.random.default_rng(seed).uniform(0.4, 0.8)))
+
+
+TRAIN = """
+import sys
+from test_train import CFG
+from jaxdenoise.train import train
+train("lbf", sys.argv[1], sys.argv[2], steps=12, config=CFG, progress=False, checkpoint_every=1,
+      resume=True, optimizer="adam", learning_rate=1e-2)
+"""
+
+
+@pytest.fixture(scope="module")
+def train_data(tmp_path_factory):
+    from test_train import write_rooms
+
+    return write_rooms(tmp_path_factory.mktemp("rooms"))
+
+
+def _train_case(tmp_path, data, fraction):
+    full, part = tmp_path / "full", tmp_path / f"part_{fraction:.2f}"
+    cmd = [sys.executable, "-c", TRAIN, str(data)]
+    duration = _run(cmd + [str(full)])
+    assert _kill_after(cmd + [str(part)], fraction * duration) is None, "finished before the kill"
+    if part.exists():
+        _all_complete(part)
+        from jaxdenoise import checkpoint
+
+        if (part / "checkpoint" / "params.npz").exists():
+            checkpoint.load(part / "checkpoint")  # a complete, loadable checkpoint
+    _run(cmd + [str(part)])
+    from jaxdenoise import checkpoint
+
+    a, _ = checkpoint.load(full / "weights")
+    b, _ = checkpoint.load(part / "weights")
+    import jax
+
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+        # the same batches and updates from the last checkpoint: equal up to float32 rounding
+        np.testing.assert_allclose(x, y, rtol=1e-6, atol=1e-7)
+
+
+def test_training_killed_and_resumed_matches(tmp_path, train_data):
+    _train_case(tmp_path, train_data, 0.8)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_training_killed_at_random_moments(tmp_path, train_data, seed):
+    _train_case(tmp_path, train_data, float(np.random.default_rng(seed).uniform(0.5, 0.9)))
+
+
+def test_bench_killed_leaves_no_half_written_report(tmp_path):
+    """Killed while scoring or writing, bench leaves either no report file or a complete one."""
+    from conftest import make_shot, synthetic_frame
+
+    data = tmp_path / "data"
+    (data / "scene_0000").mkdir(parents=True)
+    make_shot(data / "scene_0000", synthetic_frame(16, 16, seed=1).color,
+              {4: synthetic_frame(16, 16, seed=2), 16: synthetic_frame(16, 16, seed=3)})
+    cmd = [sys.executable, "-m", "jaxdenoise.cli", "bench", str(data), "--methods", "input,gaussian",
+           "--out", str(tmp_path / "r"), "--quiet"]
+    duration = _run(cmd)
+    for fraction in (0.5, 0.8, 0.95):
+        _kill_after(cmd, fraction * duration)
+        if (tmp_path / "r").exists():
+            _all_complete(tmp_path / "r")
+    _run(cmd)
+    assert json.loads((tmp_path / "r" / "results.json").read_text())["records"]
