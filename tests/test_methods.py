@@ -36,12 +36,13 @@ def test_check_module_names_incomplete_hook_groups():
     assert "fake_method: missing required 'apply'" in check_module(fake)
 
 
-# Small settings where the defaults would compile a 55x55 window (the batch rule does not depend on
+# Small settings where the defaults would compile large windows (the batch rule does not depend on
 # them). poisson-l1 is checked with its ADMM solver: IRLS (the default) reweights by 1 / |residual|
 # with CG stopped at float32's rounding floor, so it amplifies rounding differences between two
 # compilations of the same arithmetic (measured: 2e-2 between a frame solved alone and in a batch
 # of two, 0 between eager and jit of the same program); the batching itself is the same code path.
 SMALL = {"lbf": {"radius": 1, "prefilter": False}, "lbf-nlm": {"radius": 1, "prefilter": False},
+         "bilateral": {"radius": 2, "prefilter": False}, "nlm": {"radius": 2, "prefilter": False},
          "poisson-l1": {"solver": "admm"}}
 
 
