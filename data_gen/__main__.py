@@ -49,7 +49,10 @@ def main(argv: list[str] | None = None) -> int:
     d.add_argument("--count", type=int, required=True)
     d.add_argument("--start", type=int, default=0, help="index of the first scene folder (default 0)")
     d.add_argument("--res", type=int, default=128, help="square resolution (default 128)")
-    d.add_argument("--workers", type=int, default=1)
+    d.add_argument("--workers", type=int, default=1, help="local worker processes (default 1)")
+    d.add_argument("--scheduler", default=None,
+                   help="render on Dask: 'local', 'local:N' (a local cluster of N workers) or a scheduler "
+                        "address such as tcp://host:8786 (needs the cluster extra)")
     d.add_argument("--note", default=None, help="free text stored in the manifest")
     common(d)
     a = p.parse_args(argv)
@@ -93,11 +96,14 @@ def main(argv: list[str] | None = None) -> int:
     m = generate_dataset(a.family, a.count, a.out, width=a.res, spp=a.spp, instances=a.instances,
                          ref_spp=a.ref_spp, seed=a.seed, start=a.start, workers=a.workers, max_depth=a.max_depth,
                          methods=_names(a.methods), buffers=_names(a.buffers), progress=not a.no_progress,
-                         command=command, note=a.note)
+                         command=command, note=a.note, scheduler=a.scheduler)
     size = dataset_size_bytes(a.out) / 2**20
+    last = m["runs"][-1]
+    where = (f", Dask {a.scheduler}: {last.get('workers', '?')} worker(s), {last.get('retries', 0)} retried shot(s)"
+             if a.scheduler else "")
     print(f"data_gen dataset: {len(m['scenes'])} scenes in {a.out} ({size:.0f} MiB, "
-          f"{m['total_render_seconds']:.0f} s rendering in total, this run {m['runs'][-1]['wall_seconds']:.0f} s wall, "
-          f"variant {variant})")
+          f"{m['total_render_seconds']:.0f} s rendering in total, this run {last['wall_seconds']:.0f} s wall, "
+          f"variant {variant}{where})")
     return 0
 
 
@@ -107,7 +113,7 @@ if __name__ == "__main__":
     except Exception as exc:  # noqa: BLE001 - one clear line instead of a traceback for user errors
         from .scenes import SceneError
 
-        if isinstance(exc, (SceneError, ValueError)):
+        if isinstance(exc, (SceneError, ValueError, ImportError)):
             print(f"data_gen: error: {exc}", file=sys.stderr)
             sys.exit(2)
         raise

@@ -3,7 +3,8 @@
 
 Resumable: each scene's files are skipped when finished (`render_shot`), and the manifest is rewritten
 atomically after every scene. Scenes render in parallel with ``workers`` processes (spawned: Dr.Jit
-state must not be forked).
+state must not be forked), or on a Dask cluster with ``scheduler`` (`data_gen.cluster`: one task per
+scene, the client assembles the manifest).
 """
 from __future__ import annotations
 
@@ -39,9 +40,12 @@ def generate_dataset(family: str, count: int, out: str | os.PathLike, *, width: 
                      ref_spp: int = 1024, seed: int = 0, start: int = 0, workers: int = 1, max_depth: int = 8,
                      methods: Iterable[str] | None = None, buffers: Iterable[str] | None = None,
                      progress: bool = True, samples_per_pass: int = 1 << 20, command: str | None = None,
-                     note: str | None = None, _stop_after: int | None = None) -> dict:
+                     note: str | None = None, scheduler: str | None = None, _stop_after: int | None = None,
+                     _die_once: str | None = None) -> dict:
     """Render ``count`` procedural scenes of ``family`` (scene k uses seed ``seed + start + k`` and
-    folder ``scene_{start + k:04d}``) into ``out``; returns the manifest."""
+    folder ``scene_{start + k:04d}``) into ``out``; returns the manifest. ``scheduler`` (``local``,
+    ``local:N`` or a Dask scheduler address) renders one Dask task per scene instead of local
+    ``workers`` (`data_gen.cluster`); the output is the same files."""
     import json
 
     from jaxdenoise.fsutil import write_json
@@ -54,6 +58,8 @@ def generate_dataset(family: str, count: int, out: str | os.PathLike, *, width: 
         raise ValueError(f"count must be an int >= 1, got {count!r}")
     if not isinstance(workers, int) or workers < 1:
         raise ValueError(f"workers must be an int >= 1, got {workers!r}")
+    if scheduler is not None and workers != 1:
+        raise ValueError("give either workers (local processes) or scheduler (a Dask cluster), not both")
     height = width if height is None else height
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -64,7 +70,9 @@ def generate_dataset(family: str, count: int, out: str | os.PathLike, *, width: 
     run = {"family": family, "count": count, "start": start, "seed": seed, "width": width, "height": height,
            "spp": list(spp), "instances": instances, "ref_spp": ref_spp, "max_depth": max_depth,
            "methods": list(methods) if methods is not None else None,
-           "buffers": list(buffers) if buffers is not None else None, "command": command, "note": note}
+           "buffers": list(buffers) if buffers is not None else None, "command": command, "note": note,
+           "scheduler": scheduler}
+    run_id = f"{os.getpid()}-{time.time_ns()}"
     jobs = []
     for k in range(count):
         idx = start + k
@@ -73,8 +81,9 @@ def generate_dataset(family: str, count: int, out: str | os.PathLike, *, width: 
                      "width": width, "height": height, "spp": list(spp), "instances": instances,
                      "ref_spp": ref_spp, "methods": list(methods) if methods is not None else None,
                      "buffers": list(buffers) if buffers is not None else None, "max_depth": max_depth,
-                     "progress": progress and workers == 1, "samples_per_pass": samples_per_pass,
-                     "_stop_after": _stop_after})
+                     "progress": progress and workers == 1 and scheduler is None,
+                     "samples_per_pass": samples_per_pass, "_stop_after": _stop_after, "run_id": run_id,
+                     "_die_once": _die_once})
     run["status"] = "running"
     manifest["runs"].append(run)  # recorded before rendering, so an interrupted run is listed too
     write_json(mpath, manifest)
@@ -93,7 +102,15 @@ def generate_dataset(family: str, count: int, out: str | os.PathLike, *, width: 
             bar.update(1)
 
     try:
-        if workers == 1:
+        if scheduler is not None:
+            from .cluster import run_jobs
+
+            for name, rec in run_jobs(jobs, scheduler):
+                run["workers"] = rec.pop("cluster_workers")
+                run["retries"] = run.get("retries", 0) + rec.pop("attempts") - 1
+                rec.pop("worker_threads", None)
+                done(name, rec)
+        elif workers == 1:
             for job in jobs:
                 done(*_render_one(job))
         else:

@@ -2,7 +2,8 @@
 # Installs everything jaxdenoise needs on a fresh Debian 12 / Python 3.11 machine:
 #  1. an LLVM >= 16 for Mitsuba's LLVM variants (Debian's libllvm19; LLVM 15 crashes on some CPUs),
 #     when root with apt-get; otherwise Mitsuba falls back to scalar_rgb (data_gen says so once);
-#  2. the package itself, editable, with the test tools and pyoidn (the OIDN peer).
+#  2. the package itself, editable, with the test tools, pyoidn (the OIDN peer) and Dask (the
+#     cluster extra: `--scheduler` of data_gen dataset, tested on a local cluster).
 # Idempotent: a second run installs nothing new.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -26,4 +27,4 @@ if ! have_llvm; then
   fi
 fi
 
-python -m pip install -q --disable-pip-version-check -e '.[test,oidn]'
+python -m pip install -q --disable-pip-version-check -e '.[test,oidn,cluster]'
