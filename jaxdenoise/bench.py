@@ -134,10 +134,75 @@ def _relative(path: str | os.PathLike, start: str | os.PathLike) -> str:
     return os.path.relpath(Path(path).resolve(), Path(start).resolve())
 
 
+def _score_task(render: str, reference: str, methods: list[str], weights: dict) -> list[dict]:
+    """One single-frame render scored by every method on a Dask worker (no timing)."""
+    ref = read_image(reference)
+    buffers, _ = read_buffers(render)
+    out = []
+    for name in methods:
+        try:
+            m, params = resolve(name, weights.get(name))
+            missing = sorted(m.required() - buffers.present())
+            if missing:
+                out.append({"method": name, "skipped": f"frame lacks buffer(s) {missing}"})
+                continue
+            image = np.asarray(inference_fn(m)(params, prepare(m, buffers, where=render)), np.float32)
+        except MethodError as e:
+            out.append({"method": name, "skipped": str(e)})
+            continue
+        out.append({"method": name, **score(image, ref)})
+    return out
+
+
+def _distributed_scores(singles: list[Shot], methods: list[str], weights: dict, spec: str, progress: bool) -> dict:
+    """{(render path, method): scores or {"skipped": why}} computed on the Dask cluster ``spec``
+    (``local[:N]`` or an address; every worker must see the data folder and the weights)."""
+    try:
+        import distributed
+    except ImportError as e:
+        raise ImportError(f"--scheduler needs Dask ({e}); install the cluster extra: pip install -e '.[cluster]'") from None
+    from tqdm import tqdm
+
+    if spec == "local" or spec.startswith("local:"):
+        n = int(spec.partition(":")[2] or os.cpu_count() or 1)
+        cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
+                                           silence_logs=40, env={"OMP_NUM_THREADS": "1", "JAX_PLATFORMS": "cpu",
+                                                                 "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false "
+                                                                              "intra_op_parallelism_threads=1"})
+        client = distributed.Client(cluster)
+    else:
+        cluster, client = None, distributed.Client(spec)
+    jobs = [(str(r.path), str(s.reference)) for s in singles for r in s.renders]
+    out = {}
+    try:
+        futures = client.map(_score_task, [j[0] for j in jobs], [j[1] for j in jobs], methods=methods,
+                             weights=weights, pure=False, retries=1)
+        index = {f.key: j for f, j in zip(futures, jobs)}
+        for f in tqdm(distributed.as_completed(futures), total=len(futures), desc="bench (scoring on Dask)",
+                      disable=not progress, leave=False):
+            render = index[f.key][0]
+            for rec in f.result():
+                out[(render, rec["method"])] = rec
+        out["__workers__"] = len(client.scheduler_info().get("workers", {}))
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+    return out
+
+
 def run(data_dir: str | os.PathLike, methods: Iterable[str], out_dir: str | os.PathLike, *,
-        runs: int = MIN_RUNS, weights: dict[str, str] | None = None, progress: bool = True) -> dict:
+        runs: int = MIN_RUNS, weights: dict[str, str] | None = None, progress: bool = True,
+        scheduler: str | None = None, timing: bool = True) -> dict:
     """Benchmark ``methods`` on every render under ``data_dir``; writes the three reports into
-    ``out_dir`` and returns ``{"records": [...], "temporal": [...], "skipped": [...], "config": {...}}``."""
+    ``out_dir`` and returns ``{"records": [...], "temporal": [...], "skipped": [...], "config": {...}}``.
+
+    ``scheduler`` (``local[:N]`` or a Dask scheduler address, the cluster extra) computes the quality
+    columns of the single-frame renders on the cluster's workers, in parallel. Timings are never taken
+    concurrently with other work: after the distributed scoring (and after a local cluster has shut
+    down) the client times every method on every frame alone, as without a scheduler; ``timing=False``
+    leaves the time columns empty (quality only) and the plot out. Sequences are run on the client.
+    """
     from tqdm import tqdm
 
     t_start = time.perf_counter()
@@ -154,7 +219,12 @@ def run(data_dir: str | os.PathLike, methods: Iterable[str], out_dir: str | os.P
     if not resolved:
         raise MethodError("no method can run: " + "; ".join(s["reason"] for s in skipped))
     out_dir.mkdir(parents=True, exist_ok=True)
+    dist = _distributed_scores(singles, list(resolved), {k: str(v) for k, v in (weights or {}).items()},
+                               scheduler, progress) if scheduler is not None else None
     config = {"data_dir": _relative(data_dir, out_dir), "methods": list(methods), "runs": runs,
+              "scheduler": scheduler, "dask_workers": dist.pop("__workers__") if dist else None,
+              "timing": ("on the client alone, after the distributed scoring" if scheduler else "on this machine")
+              if timing else "none (quality only)",
               "weights": {k: _relative(v, out_dir) for k, v in (weights or {}).items()}, "shots": len(shots),
               "sequences": len(seqs), "renders": sum(len(s.renders) for s in shots),
               "method_configs": {n: dataclasses.asdict(m.config) for n, (m, _) in resolved.items()},
@@ -177,13 +247,22 @@ def run(data_dir: str | os.PathLike, methods: Iterable[str], out_dir: str | os.P
                                     "reason": f"frame lacks buffer(s) {missing}"})
                     bar.update(1)
                     continue
+                d = dist.get((str(render.path), name)) if dist is not None else None
+                if d is not None and "skipped" in d:
+                    skipped.append({"method": name, "file": str(render.path.relative_to(data_dir)), "reason": d["skipped"]})
+                    bar.update(1)
+                    continue
                 try:
-                    r = time_method(m, params, buffers, runs=runs, where=str(render.path))
+                    r = time_method(m, params, buffers, runs=runs, where=str(render.path)) if timing else \
+                        _untimed(m, params, buffers, str(render.path), d)
                 except MethodError as e:  # e.g. the frame needs more memory than there is (XLA's estimate)
                     skipped.append({"method": name, "file": str(render.path.relative_to(data_dir)), "reason": str(e)})
                     bar.update(1)
                     continue
-                records.append(_record(shot, render, name, r, r["image"], ref, data_dir))
+                rec = _record(shot, render, name, r, r["image"], ref, data_dir)
+                if d is not None:  # the quality columns as the workers computed them
+                    rec.update({k: d[k] for k in ("relmse", "ssim", "psnr")})
+                records.append(rec)
                 bar.update(1)
     for seq in seqs:
         refs = [read_image(s.reference) for s in seq.shots]
@@ -222,6 +301,16 @@ def run(data_dir: str | os.PathLike, methods: Iterable[str], out_dir: str | os.P
     return report
 
 
+def _untimed(m: Method, params: Any, buffers: Buffers, where: str, scored: dict | None) -> dict:
+    """The record fields of an untimed run (``timing=False``): the image (unless the workers scored
+    it already), no seconds, no memory."""
+    image = None
+    if scored is None:
+        image = np.asarray(inference_fn(m)(params, prepare(m, buffers, where=where)), np.float32)
+    return {"image": image, "seconds": None, "seconds_all": [], "compile_seconds": None, "rss_peak_bytes": None,
+            "xla_bytes": None}
+
+
 def _record(shot: Shot, render, method: str, r: dict, image: np.ndarray, ref: np.ndarray, data_dir: Path,
             **extra: Any) -> dict:
     rec = {"shot": shot.name, "file": str(render.path.relative_to(data_dir)), "spp": render.spp,
@@ -229,7 +318,8 @@ def _record(shot: Shot, render, method: str, r: dict, image: np.ndarray, ref: np
            "seconds_all": r["seconds_all"], "compile_seconds": r["compile_seconds"],
            "rss_peak_bytes": r["rss_peak_bytes"], "xla_bytes": r["xla_bytes"],
            "height": int(ref.shape[0]), "width": int(ref.shape[1]), **extra}
-    rec.update(score(image, ref))
+    if image is not None:
+        rec.update(score(image, ref))
     return rec
 
 
@@ -248,7 +338,9 @@ def summarize(records: list[dict]) -> list[dict]:
     order = {m: i for i, m in enumerate(dict.fromkeys(r["method"] for r in records))}
     rss_peak: dict[str, int] = {}
     for r in records:
-        rss_peak[r["method"]] = max(rss_peak.get(r["method"], 0), int(r["rss_peak_bytes"]))
+        if r.get("rss_peak_bytes") is not None:
+            rss_peak[r["method"]] = max(rss_peak.get(r["method"], 0), int(r["rss_peak_bytes"]))
+    timed = lambda rs, k: [r[k] for r in rs if r.get(k) is not None]  # None: an untimed (quality-only) run
     rows = []
     for (method, spp), rs in sorted(groups.items(), key=lambda kv: (order[kv[0][0]], kv[0][1] or 0)):
         render = [r["render_seconds"] for r in rs]
@@ -258,9 +350,9 @@ def summarize(records: list[dict]) -> list[dict]:
             "relmse": float(np.mean([r["relmse"] for r in rs])),
             "ssim": float(np.mean([r["ssim"] for r in rs])),
             "psnr": float(np.mean([r["psnr"] for r in rs])),
-            "seconds": float(np.median([r["seconds"] for r in rs])),
-            "compile_seconds": float(max(r["compile_seconds"] for r in rs)),
-            "rss_peak_mb": rss_peak[method] / 2**20,
+            "seconds": float(np.median(timed(rs, "seconds"))) if timed(rs, "seconds") else None,
+            "compile_seconds": float(max(timed(rs, "compile_seconds"))) if timed(rs, "compile_seconds") else None,
+            "rss_peak_mb": rss_peak[method] / 2**20 if method in rss_peak else None,
             "xla_mb": max(xla) / 2**20 if xla else None,
             "render_seconds": float(np.median(render)) if all(x is not None for x in render) else None,
         })
@@ -271,11 +363,11 @@ def markdown_table(rows: list[dict]) -> str:
     lines = ["| method | spp | frames | RelMSE | SSIM | PSNR (dB) | time (ms, median) | compile (s) "
              "| RSS peak MB | XLA MB |",
              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    fmt = lambda v, f, scale=1.0: "-" if v is None else format(scale * v, f)
     for r in rows:
-        xla = f"{r['xla_mb']:.1f}" if r.get("xla_mb") is not None else "-"
         lines.append(f"| {r['method']} | {r['spp'] if r['spp'] is not None else '?'} | {r['frames']} | "
-                     f"{r['relmse']:.4g} | {r['ssim']:.4f} | {r['psnr']:.2f} | {1e3 * r['seconds']:.2f} | "
-                     f"{r['compile_seconds']:.2f} | {r['rss_peak_mb']:.1f} | {xla} |")
+                     f"{r['relmse']:.4g} | {r['ssim']:.4f} | {r['psnr']:.2f} | {fmt(r['seconds'], '.2f', 1e3)} | "
+                     f"{fmt(r['compile_seconds'], '.2f')} | {fmt(r['rss_peak_mb'], '.1f')} | {fmt(r.get('xla_mb'), '.1f')} |")
     return "\n".join(lines)
 
 
@@ -313,7 +405,8 @@ def write_reports(report: dict, out_dir: str | os.PathLike) -> None:
           f"{cfg.get('sequences', 0)} sequence(s), {cfg['renders']} render(s)); "
           f"device: {cfg['device']}, {cfg['cpu_count']} cores; jax {cfg['jax']}.",
           f"RelMSE = mean((x - ref)^2 / (ref^2 + 0.01)); SSIM and PSNR on clip(x, 0, 1)^(1/2.2); "
-          f"time = median of {cfg['runs']} runs after a warm-up, compile time separate; RSS peak = the "
+          f"time = median of {cfg['runs']} runs after a warm-up ({cfg.get('timing', 'on this machine')}), compile "
+          f"time separate; RSS peak = the "
           f"method's largest resident-set growth over its frames, XLA = compiled program footprint "
           f"(see docs/metrics.md).\n", markdown_table(rows), ""]
     if temporal:
@@ -328,8 +421,11 @@ def write_reports(report: dict, out_dir: str | os.PathLike) -> None:
             if line not in seen:
                 seen.add(line)
                 md.append(line)
+    if any(r["seconds"] is None for r in rows):
+        md.append("\nNo `error_vs_time.png`: this run took no timings (quality only).")
     write_text(out_dir / "results.md", "\n".join(md) + "\n")
-    plot(rows, out_dir / "error_vs_time.png")
+    if all(r["seconds"] is not None for r in rows):
+        plot(rows, out_dir / "error_vs_time.png")
 
 
 def plot(rows: list[dict], path: str | os.PathLike) -> Path:

@@ -110,7 +110,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             raise SystemExit(f"error: --weights '{item}': expected METHOD=PATH")
         weights[name] = path
     report = bench.run(args.data, parse_list(args.methods), args.out, runs=args.runs, weights=weights,
-                       progress=not args.quiet)
+                       progress=not args.quiet, scheduler=args.scheduler, timing=not args.no_timing)
     print(bench.markdown_table(bench.summarize(report["records"])))
     print(f"reports: {Path(args.out) / 'results.md'}, {Path(args.out) / 'results.json'}, "
           f"{Path(args.out) / 'error_vs_time.png'}")
@@ -167,6 +167,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--runs", type=int, default=5, help="timed runs per frame (>= 5)")
     s.add_argument("--weights", action="append", help="METHOD=PATH, repeatable")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.add_argument("--scheduler", help="score the frames on Dask: 'local', 'local:N' or a scheduler address "
+                                       "(cluster extra); timings are then taken on this machine alone, after")
+    s.add_argument("--no-timing", action="store_true", help="quality columns only (no timed runs, no plot)")
     s.set_defaults(func=_cmd_bench)
 
     s = sub.add_parser("train", help="train a learned method")

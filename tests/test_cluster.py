@@ -100,3 +100,64 @@ def test_without_dask_the_error_names_the_extra(monkeypatch):
 
     with pytest.raises(ImportError, match=r"install the cluster extra: pip install -e '\.\[cluster\]'"):
         cluster.connect("local:1")
+
+
+def test_bench_scores_on_dask_equal_local_scores(tmp_path):
+    """`bench --scheduler local:2`: the quality columns computed by the workers equal a local run's
+    (tolerance 1e-6 relative: the same programs on the same inputs); timings come from the client
+    alone afterwards, as the report says; --no-timing gives quality only."""
+    from conftest import make_shot, synthetic_frame
+
+    from jaxdenoise import bench
+
+    data = tmp_path / "data"
+    for s in range(2):
+        (data / f"scene_{s:04d}").mkdir(parents=True)
+        make_shot(data / f"scene_{s:04d}", synthetic_frame(16, 16, seed=100 + s).color,
+                  {4: synthetic_frame(16, 16, seed=s, fields=("color", "albedo", "normal")),
+                   16: synthetic_frame(16, 16, seed=10 + s, fields=("color", "albedo", "normal"))})
+    local = bench.run(data, ["input", "gaussian"], tmp_path / "local", runs=5, progress=False)
+    dist = bench.run(data, ["input", "gaussian"], tmp_path / "dask", runs=5, progress=False, scheduler="local:2")
+    key = lambda r: (r["file"], r["method"])
+    a = {key(r): r for r in local["records"]}
+    b = {key(r): r for r in dist["records"]}
+    assert set(a) == set(b)
+    for k in a:
+        for m in ("relmse", "ssim", "psnr"):
+            assert b[k][m] == pytest.approx(a[k][m], rel=1e-6)
+        assert b[k]["seconds"] > 0  # timed on the client
+    assert dist["config"]["dask_workers"] == 2 and "after the distributed scoring" in dist["config"]["timing"]
+    q = bench.run(data, ["input", "gaussian"], tmp_path / "q", runs=5, progress=False, scheduler="local:2",
+                  timing=False)
+    assert all(r["seconds"] is None for r in q["records"]) and not (tmp_path / "q" / "error_vs_time.png").exists()
+    assert "No `error_vs_time.png`" in (tmp_path / "q" / "results.md").read_text()
+
+
+@pytest.mark.mitsuba
+def test_dask_cli_recipe_on_localhost(serial, tmp_path):
+    """The documented recipe: a scheduler and a worker started with the `dask` CLI, then
+    `--scheduler tcp://127.0.0.1:PORT` (docs/data_gen.md)."""
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    addr = f"tcp://127.0.0.1:{port}"
+    sched = subprocess.Popen(["dask", "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"],
+                             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    work = subprocess.Popen(["dask", "worker", addr, "--nthreads", "1", "--nworkers", "2", "--no-dashboard"],
+                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        import distributed
+
+        with distributed.Client(addr, timeout=60) as c:
+            c.wait_for_workers(2, timeout=60)
+        m = data_gen.generate_dataset("mixed", 4, tmp_path / "d", scheduler=addr, **KW)
+    finally:
+        work.terminate()
+        sched.terminate()
+        work.wait(30)
+        sched.wait(30)
+    assert m["runs"][-1]["workers"] == 2
+    assert _files(tmp_path / "d") == _files(serial[0])
