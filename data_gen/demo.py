@@ -58,7 +58,8 @@ def run_demo(args: argparse.Namespace) -> int:
     print(bench.markdown_table(bench.summarize(report["records"])))
     for s in report["skipped"]:
         print(f"not run: {s['method']}: {s['reason']}")
-    print(f"plot: {Path(args.out) / 'error_vs_time.png'}  table: {Path(args.out) / 'results.md'}")
+    print(f"plot: {Path(args.out) / 'error_vs_time.png'}  viewer: {Path(args.out) / 'viewer.html'}  "
+          f"table: {Path(args.out) / 'results.md'}")
     print(f"demo: {variant}, {args.size}x{args.size}, spp {list(spp)}, reference {args.ref_spp} spp; "
           f"render {render_s:.1f} s ({f'{len(rendered)} file(s) rendered' if rendered else 'all cached'}), "
           f"total {total:.1f} s; {bench.one_line(report)}")

@@ -1,7 +1,8 @@
 """Error against run time: the harness behind ``jaxdenoise bench`` (DESIGN.md "Error against run time").
 
 A data folder is read by `jaxdenoise.data` (shots, renders with their header ``spp``, and
-``frame_XXXX/`` sequences). Every chosen method runs on every render; each record holds relmse,
+``frame_XXXX/`` sequences). Every chosen method runs on every render (its output is kept, as half
+floats, for ``viewer.html``: `jaxdenoise.viewer`); each record holds relmse,
 ssim, psnr, seconds (median of ``runs`` >= 5 timed calls after a warm-up), compile seconds (XLA
 compilation, measured ahead of time and reported separately) and memory. Sequences go through the
 one sequence driver (`jaxdenoise.sequence`): recurrent methods carry their state, windowed ones
@@ -38,6 +39,7 @@ from .data import Shot, discover, sequences
 from .fsutil import atomic_path, write_json, write_text
 from .io import read_buffers, read_image
 from .methods import Method, MethodError
+from .viewer import ImageStore, write_viewer
 
 MIN_RUNS = 5
 
@@ -231,6 +233,7 @@ def run(data_dir: str | os.PathLike, methods: Iterable[str], out_dir: str | os.P
               "jax": jax.__version__, "device": str(jax.devices()[0]), "cpu_count": os.cpu_count()}
     records: list[dict] = []
     temporal: list[dict] = []
+    store = ImageStore()  # every image shown by viewer.html (float16, base64)
     total = (sum(len(s.renders) for s in singles) + sum(len(q.render_names()) for q in seqs)) * len(resolved)
     bar = tqdm(total=total, desc="bench", unit="run", disable=not progress, leave=False)
     for shot in singles:
@@ -262,6 +265,9 @@ def run(data_dir: str | os.PathLike, methods: Iterable[str], out_dir: str | os.P
                 rec = _record(shot, render, name, r, r["image"], ref, data_dir)
                 if d is not None:  # the quality columns as the workers computed them
                     rec.update({k: d[k] for k in ("relmse", "ssim", "psnr")})
+                rec["reference_image"] = store.add(f"ref:{rec['shot']}:{shot.reference.name}", ref)
+                if r["image"] is not None:
+                    rec["image_id"] = store.add(f"{rec['file']}|{name}", r["image"])
                 records.append(rec)
                 bar.update(1)
     for seq in seqs:
@@ -285,6 +291,9 @@ def run(data_dir: str | os.PathLike, methods: Iterable[str], out_dir: str | os.P
                 r = time_sequence(m, params, frames, runs=runs, names=[str(x.path) for x in renders])
                 recs = [_record(s, x, name, r, img, ref, data_dir, sequence=_relative(seq.folder, data_dir),
                                 frame=s.frame) for s, x, img, ref in zip(seq.shots, renders, r["images"], refs)]
+                for rec, img, ref, s in zip(recs, r["images"], refs, seq.shots):
+                    rec["reference_image"] = store.add(f"ref:{rec['sequence']}/{s.name}", ref)
+                    rec["image_id"] = store.add(f"{rec['file']}|{name}", img)
                 records.extend(recs)
                 temporal.append({
                     "sequence": _relative(seq.folder, data_dir), "render": rname, "method": name,
@@ -298,6 +307,7 @@ def run(data_dir: str | os.PathLike, methods: Iterable[str], out_dir: str | os.P
     config["wall_seconds"] = time.perf_counter() - t_start
     report = {"records": records, "temporal": temporal, "skipped": skipped, "config": config}
     write_reports(report, out_dir)
+    write_viewer(report, store, out_dir)
     return report
 
 

@@ -113,7 +113,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                        progress=not args.quiet, scheduler=args.scheduler, timing=not args.no_timing)
     print(bench.markdown_table(bench.summarize(report["records"])))
     print(f"reports: {Path(args.out) / 'results.md'}, {Path(args.out) / 'results.json'}, "
-          f"{Path(args.out) / 'error_vs_time.png'}")
+          f"{Path(args.out) / 'error_vs_time.png'}, viewer {Path(args.out) / 'viewer.html'}")
     print(bench.one_line(report))
     return 0
 
