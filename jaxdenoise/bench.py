@@ -445,13 +445,15 @@ def plot(rows: list[dict], path: str | os.PathLike) -> Path:
     denoise) and the raw Monte Carlo input draws the equal-time curve; otherwise it is the
     denoising time alone and the curve is left out (the legend says so).
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    # A bare Figure with the Agg canvas: no pyplot state, and no switch of the process's backend
+    # (matplotlib.use would break plotting in the user's notebook).
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
 
     total_time = all(r["render_seconds"] is not None for r in rows)
-    fig, ax = plt.subplots(figsize=(6.5, 4.5), dpi=120)
+    fig = Figure(figsize=(6.5, 4.5), dpi=120)
+    FigureCanvasAgg(fig)
+    ax = fig.subplots()
     methods = list(dict.fromkeys(r["method"] for r in rows))
     floor = 1e-6  # the raw input's denoise time is ~0; keep it on a log axis
     dropped = []
@@ -490,7 +492,6 @@ def plot(rows: list[dict], path: str | os.PathLike) -> Path:
     path = Path(path)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")
-    plt.close(fig)
     return path
 
 

@@ -1,6 +1,7 @@
 """Shared fixtures: small synthetic frames with every buffer, written through the real EXR path."""
 from __future__ import annotations
 
+import contextlib
 import os
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
@@ -46,3 +47,15 @@ def make_shot(folder, ref: np.ndarray, renders: dict[int, Buffers]) -> None:
     for spp, b in renders.items():
         write_buffers(folder / f"spp{spp:04d}_00.exr", b.replace(spp=np.float32(spp)),
                       {"render_seconds": 0.01 * spp})
+
+
+@contextlib.contextmanager
+def registered(name: str, module: str):
+    """A test-only method (a module under tests/) registered for the duration of the block."""
+    from jaxdenoise.methods import _REGISTRY, register
+
+    register(name, module)
+    try:
+        yield
+    finally:
+        _REGISTRY.pop(name, None)

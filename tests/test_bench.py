@@ -6,7 +6,7 @@ import pytest
 from jaxdenoise import bench, data as jdata
 from jaxdenoise.cli import main
 
-from conftest import make_shot, synthetic_frame
+from conftest import make_shot, registered, synthetic_frame
 
 
 @pytest.fixture
@@ -62,13 +62,9 @@ def test_bench_writes_three_reports(data, tmp_path):
 
 
 def test_bench_records_what_cannot_run(data, tmp_path):
-    from jaxdenoise.methods import _REGISTRY, register
 
-    register("gauss-needs-dx", "fake_needs_dx")
-    try:
+    with registered("gauss-needs-dx", "fake_needs_dx"):
         report = bench.run(data, ["input", "gauss-needs-dx"], tmp_path / "r", runs=5, progress=False)
-    finally:
-        _REGISTRY.pop("gauss-needs-dx")
     assert len(report["records"]) == 3
     assert {s["reason"] for s in report["skipped"]} == {"frame lacks buffer(s) ['dx']"}
     assert "frame lacks buffer(s) ['dx']" in (tmp_path / "r" / "results.md").read_text()

@@ -25,7 +25,7 @@ from jaxdenoise.io import read_buffers, read_image
 from jaxdenoise.methods import get, lbf
 from jaxdenoise.sequence import run, run_all
 
-from conftest import make_shot, synthetic_frame
+from conftest import make_shot, registered, synthetic_frame
 
 # Small LBF (3x3 window, no prefilter) with non-trivial normalization: compiles in seconds.
 CFG = lbf.Config(radius=1, prefilter=False, features=("normal", "albedo"), temporal_radius=1)
@@ -138,6 +138,17 @@ def test_frame_without_spp_is_refused_by_name(shot, tmp_path, weights):
 
 # -- the sequence driver ---------------------------------------------------------------------------
 
+def _write_sequence(folder, frames, refs):
+    """``folder/frame_XXXX/{reference,spp0004_00}.exr`` for each frame (the bench layout of a video)."""
+    from jaxdenoise.io import write_buffers, write_image
+
+    for i, (f, r) in enumerate(zip(frames, refs)):
+        d = folder / f"frame_{i:04d}"
+        d.mkdir(parents=True)
+        write_image(d / "reference.exr", r)
+        write_buffers(d / "spp0004_00.exr", f)
+
+
 def _frames(n=5, spp=4):
     return [synthetic_frame(12, 12, seed=i, spp=spp) for i in range(n)]
 
@@ -203,16 +214,11 @@ def test_api_cli_and_driver_agree_on_a_sequence(weights, tmp_path):
 def test_bench_runs_sequences_through_the_driver(weights, tmp_path):
     """A 3-frame sequence: per-frame records, one temporal record per method with the temporal
     error, equal to the driver's output scored by hand."""
-    from jaxdenoise.io import write_buffers, write_image
 
     folder, params = weights
     frames = _frames(3)
     refs = [synthetic_frame(12, 12, seed=50 + i).color for i in range(3)]
-    for i, (f, r) in enumerate(zip(frames, refs)):
-        d = tmp_path / "data" / "seq_a" / f"frame_{i:04d}"
-        d.mkdir(parents=True)
-        write_image(d / "reference.exr", r)
-        write_buffers(d / "spp0004_00.exr", f)
+    _write_sequence(tmp_path / "data" / "seq_a", frames, refs)
     report = bench.run(tmp_path / "data", ["input", "lbf"], tmp_path / "r", runs=5,
                        weights={"lbf": str(folder)}, progress=False)
     assert len(report["records"]) == 3 * 2 and {r["frame"] for r in report["records"]} == {0, 1, 2}
@@ -240,10 +246,8 @@ def test_causal_method_through_driver_and_bench(tmp_path):
     """A toy recurrent method: the driver carries its state (frame t = EMA of frames 0..t), and bench
     writes its temporal record with kind 'causal'; the EMA flickers less than the input."""
     from jaxdenoise.io import write_buffers, write_image
-    from jaxdenoise.methods import _REGISTRY, register
 
-    register("ema", "fake_recurrent")
-    try:
+    with registered("ema", "fake_recurrent"):
         m = get("ema")
         assert m.temporal == "causal"
         frames = _frames(3)
@@ -259,8 +263,6 @@ def test_causal_method_through_driver_and_bench(tmp_path):
             write_image(d / "reference.exr", ref)  # a static scene: any change is flicker
             write_buffers(d / "spp0004_00.exr", f)
         report = bench.run(tmp_path / "data", ["input", "ema"], tmp_path / "r", runs=5, progress=False)
-    finally:
-        _REGISTRY.pop("ema")
     t = {x["method"]: x for x in report["temporal"]}
     assert t["ema"]["kind"] == "causal" and t["ema"]["frames"] == 3
     assert t["ema"]["temporal_error"] < t["input"]["temporal_error"]
@@ -269,26 +271,17 @@ def test_causal_method_through_driver_and_bench(tmp_path):
 def test_training_validation_steps_temporal_methods_through_sequences(tmp_path):
     """A sequence in the validation folder is one entry run through the driver: the toy recurrent
     method's score equals the mean RelMSE of its driven outputs (1e-6), not of per-frame applies."""
-    from jaxdenoise.io import write_buffers, write_image
-    from jaxdenoise.methods import _REGISTRY, register
     from jaxdenoise.train import load_validation, validate
 
     frames = _frames(3)
     refs = [synthetic_frame(12, 12, seed=60 + i).color for i in range(3)]
-    for i, (f, r) in enumerate(zip(frames, refs)):
-        d = tmp_path / "val" / "seq" / f"frame_{i:04d}"
-        d.mkdir(parents=True)
-        write_image(d / "reference.exr", r)
-        write_buffers(d / "spp0004_00.exr", f)
-    register("ema", "fake_recurrent")
-    try:
+    _write_sequence(tmp_path / "val" / "seq", frames, refs)
+    with registered("ema", "fake_recurrent"):
         m = get("ema")
         entries = load_validation(m, tmp_path / "val")
         assert len(entries) == 1 and len(entries[0]["frames"]) == 3
         got = validate(m, {}, entries)["relmse"]
         out = run_all(m, {}, frames)
-    finally:
-        _REGISTRY.pop("ema")
     want = np.mean([float(metrics.relmse(o, r)) for o, r in zip(out, refs)])
     assert got == pytest.approx(want, rel=1e-6)
     per_frame = np.mean([float(metrics.relmse(np.asarray(f.color), r)) for f, r in zip(frames, refs)])

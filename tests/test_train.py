@@ -13,7 +13,7 @@ from jaxdenoise import checkpoint
 from jaxdenoise.methods import lbf
 from jaxdenoise.train import TrainError, restore_like, train  # restore_like: checkpoint's, as TrainError
 
-from conftest import synthetic_frame
+from conftest import registered, synthetic_frame
 
 CFG = lbf.Config(radius=2, prefilter=False, spike_removal=False, features=("normal", "albedo"),
                  train_spps=(4, 8), train_crop=8, train_scenes_per_step=2)
@@ -271,10 +271,7 @@ def test_parameter_groups_alternate_with_their_own_optimizers(tmp_path):
     a resumed run equals an uninterrupted one (exact: the same jitted steps)."""
     import jax.numpy as jnp
 
-    from jaxdenoise.methods import _REGISTRY, register
-
-    register("groups", "fake_groups")
-    try:
+    with registered("groups", "fake_groups"):
         train("groups", tmp_path, tmp_path / "one", steps=1, progress=False, optimizer="adam",
                     learning_rate=1e-2)
         p1, _ = checkpoint.load(tmp_path / "one" / "weights")
@@ -295,21 +292,15 @@ def test_parameter_groups_alternate_with_their_own_optimizers(tmp_path):
         for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
             np.testing.assert_array_equal(x, y)
         assert float(jnp.sum(jnp.abs(jnp.asarray(a["norm"])))) == 0.0  # FROZEN: never trained
-    finally:
-        _REGISTRY.pop("groups")
 
 
 def test_small_conv_net_overfits_four_crops(tmp_path):
     """A small U-Net (jaxdenoise.nn) through the generic trainer memorizes 4 noisy -> clean crops:
     the loss falls by more than 100x in 400 Adam steps (measured: 166x)."""
-    from jaxdenoise.methods import _REGISTRY, register
 
-    register("convnet", "fake_convnet")
-    try:
+    with registered("convnet", "fake_convnet"):
         train("convnet", tmp_path, tmp_path / "run", steps=400, progress=False, optimizer="adam",
               learning_rate=3e-3, checkpoint_every=400)
-    finally:
-        _REGISTRY.pop("convnet")
     meta = checkpoint.load(tmp_path / "run" / "checkpoint")[1]
     first, last = meta["history"][0], float(np.mean(meta["history"][-5:]))
     assert last < first / 100, (first, last)

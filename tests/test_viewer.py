@@ -14,9 +14,8 @@ import numpy as np
 import pytest
 
 from jaxdenoise import bench, viewer
-from jaxdenoise.methods import _REGISTRY, register
 
-from conftest import make_shot, synthetic_frame
+from conftest import make_shot, registered, synthetic_frame
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -44,11 +43,8 @@ def _page_data(html: str) -> dict:
 def report(tmp_path_factory):
     root = tmp_path_factory.mktemp("v")
     data = _data(root / "data")
-    register("gauss-needs-dx", "fake_needs_dx")  # runs on the 16-spp frame only: fails on the others
-    try:
+    with registered("gauss-needs-dx", "fake_needs_dx"):  # runs on the 16-spp frame only: fails on the others
         rep = bench.run(data, ["input", "gaussian", "gauss-needs-dx"], root / "r", runs=5, progress=False)
-    finally:
-        _REGISTRY.pop("gauss-needs-dx")
     return rep, root / "r"
 
 

@@ -136,6 +136,15 @@ def _conv_size(n: int, k: int, s: int, d: int, pad: Any, axis: int) -> int:
     return max(0, (n + lo + hi - ke) // s + 1)
 
 
+def _kernel_params(key: jax.Array, shape: tuple[int, ...], w_init, b_init, bias: bool) -> dict:
+    """``{"w": HWIO kernel, "b": bias}`` (no ``"b"`` without bias; zero bias unless ``b_init``)."""
+    k1, k2 = jax.random.split(key)
+    params = {"w": w_init(k1, shape)}
+    if bias:
+        params["b"] = b_init(k2, (shape[-1],)) if b_init else jnp.zeros((shape[-1],), jnp.float32)
+    return params
+
+
 def Conv(out_channels: int, kernel: int | tuple[int, int] = 3, *, stride: int | tuple[int, int] = 1,
          dilation: int | tuple[int, int] = 1, padding: Any = "SAME", bias: bool = True, w_init=None,
          b_init=None):
@@ -152,10 +161,7 @@ def Conv(out_channels: int, kernel: int | tuple[int, int] = 3, *, stride: int | 
 
     def init(key: jax.Array, in_shape: Sequence[int]):
         in_shape = _check_in("Conv", in_shape)
-        k1, k2 = jax.random.split(key)
-        params = {"w": w_init(k1, (kh, kw, in_shape[-1], out_channels))}
-        if bias:
-            params["b"] = b_init(k2, (out_channels,)) if b_init else jnp.zeros((out_channels,), jnp.float32)
+        params = _kernel_params(key, (kh, kw, in_shape[-1], out_channels), w_init, b_init, bias)
         h = _conv_size(in_shape[-3], kh, sh, dh, pad, 0)
         w = _conv_size(in_shape[-2], kw, sw, dw, pad, 1)
         return in_shape[:-3] + (h, w, out_channels), params
@@ -194,10 +200,7 @@ def ConvTranspose(out_channels: int, kernel: int | tuple[int, int] = 4, *, strid
 
     def init(key: jax.Array, in_shape: Sequence[int]):
         in_shape = _check_in("ConvTranspose", in_shape)
-        k1, k2 = jax.random.split(key)
-        params = {"w": w_init(k1, (kh, kw, in_shape[-1], out_channels))}
-        if bias:
-            params["b"] = b_init(k2, (out_channels,)) if b_init else jnp.zeros((out_channels,), jnp.float32)
+        params = _kernel_params(key, (kh, kw, in_shape[-1], out_channels), w_init, b_init, bias)
         size = lambda n, k, s, p: -1 if n < 0 else (n - 1) * s - 2 * p + k
         return in_shape[:-3] + (size(in_shape[-3], kh, sh, ph), size(in_shape[-2], kw, sw, pw), out_channels), params
 

@@ -1,0 +1,207 @@
+"""Builds and executes the notebooks of docs/notebooks (their sources are the cells below):
+
+    python docs/notebooks/build.py            # write + execute all, outputs committed
+    python docs/notebooks/build.py quickstart # one of them
+
+Each notebook is executed top to bottom with nbclient in a fresh kernel and saved with its outputs
+and, in its metadata, the jaxdenoise version it ran with (``metadata.jaxdenoise.version``);
+tests/test_notebooks.py checks that every committed notebook has outputs, no error and the current
+version, and (slow) executes them again.
+"""
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+
+SETUP = """\
+import tempfile, time
+from pathlib import Path
+import numpy as np
+import matplotlib.pyplot as plt
+import jaxdenoise as jd
+import data_gen
+
+WORK = Path(tempfile.mkdtemp(prefix="jaxdenoise_nb_"))  # everything this notebook writes goes here
+print("jaxdenoise", jd.__version__, "| Mitsuba variant", data_gen.setup_mitsuba())"""
+
+NOTEBOOKS = {
+    "quickstart": [
+        ("md", "# Quickstart: render, denoise with every method, compare\n\nRender the built-in scene at 4 "
+               "samples per pixel with every buffer any method reads, denoise it with every available method "
+               "through `jaxdenoise.denoise`, and look at the results side by side. Then bind a method once "
+               "with `jaxdenoise.load` and reuse the jitted function on a second frame."),
+        ("code", SETUP),
+        ("code", """\
+shot = WORK / "default"
+rec = data_gen.render_shot(data_gen.default_scene(width=128, height=128), shot, spp=[4], ref_spp=512,
+                           methods=jd.method_names(), seed=0, progress=False)
+frame, attrs = jd.read_buffers(shot / "spp0004_00.exr")
+ref = jd.read_image(shot / "reference.exr")
+print("buffers in the frame:", sorted(frame.present()), "| spp", int(frame.spp))"""),
+        ("code", """\
+from jaxdenoise import metrics
+from jaxdenoise.methods import available
+
+names = [m for m, why in available().items() if why is None]
+outs, secs = {}, {}
+for m in names:
+    t = time.perf_counter()
+    outs[m] = jd.denoise(frame, method=m)      # shipped weights for the learned methods
+    secs[m] = time.perf_counter() - t          # first call: includes compilation
+tone = lambda x: np.clip(x, 0, 1) ** (1 / 2.2)
+fig, axes = plt.subplots(2, (len(names) + 2) // 2, figsize=(15, 6))
+for ax, (title, img) in zip(axes.flat, [("reference (512 spp)", ref)] + list(outs.items())):
+    ax.imshow(tone(img)); ax.set_axis_off()
+    err = "" if title.startswith("reference") else f"\\nRelMSE {float(metrics.relmse(img, ref)):.3g}"
+    ax.set_title(title + err, fontsize=9)
+for ax in list(axes.flat)[len(names) + 1:]:
+    ax.set_axis_off()
+plt.tight_layout()"""),
+        ("md", "`jaxdenoise.load` resolves the method and its weights once and returns a jitted function; "
+               "the second call on a frame of the same size reuses the compiled program."),
+        ("code", """\
+infer = jd.load("lbf")
+rec2 = data_gen.render_shot(data_gen.default_scene(width=128, height=128), WORK / "second", spp=[4], ref_spp=0,
+                            methods=["lbf"], seed=1, progress=False)
+frame2, _ = jd.read_buffers(WORK / "second" / "spp0004_00.exr")
+for label, f in (("first frame", frame), ("second frame (another noise instance)", frame2)):
+    t = time.perf_counter(); out = infer(f); np.asarray(out)
+    print(f"{label}: {1e3 * (time.perf_counter() - t):.0f} ms, RelMSE input {float(metrics.relmse(f.color, ref)):.4f} "
+          f"-> lbf {float(metrics.relmse(out, ref)):.4f}")"""),
+        ("md", "The error differs between noise instances: RelMSE divides by the reference's brightness, so "
+               "a few bright samples spread into dark pixels weigh heavily (docs/metrics.md). The bench "
+               "(`error_vs_time.ipynb`) averages over frames and sampling rates."),
+    ],
+    "error_vs_time": [
+        ("md", "# Error against run time\n\nRun the bench harness from Python on a small data folder, read "
+               "`results.json`, and plot RelMSE against time, with the raw Monte Carlo estimate at several "
+               "sample counts as the equal-time reference."),
+        ("code", SETUP),
+        ("code", """\
+data = WORK / "data"
+for i in range(2):
+    data_gen.render_shot(data_gen.build_scene("mixed", 100 + i, width=64, height=64), data / f"scene_{i}",
+                         spp=[4, 16, 64], ref_spp=1024, methods=["gaussian", "bilateral", "lbf", "oidn"], seed=i,
+                         progress=False)
+from jaxdenoise import bench
+report = bench.run(data, ["input", "gaussian", "bilateral", "lbf", "oidn"], WORK / "report", progress=False)
+print(bench.one_line(report))"""),
+        ("code", """\
+import json
+res = json.loads((WORK / "report" / "results.json").read_text())
+rows = res["summary"]
+fig, ax = plt.subplots(figsize=(6.5, 4.5))
+for m in dict.fromkeys(r["method"] for r in rows):
+    rs = [r for r in rows if r["method"] == m]
+    x = [r["render_seconds"] + r["seconds"] for r in rs]
+    ax.plot(x, [r["relmse"] for r in rs], "k--o" if m == "input" else "-o", label="raw Monte Carlo" if m == "input" else m)
+    for xi, r in zip(x, rs):
+        ax.annotate(str(r["spp"]), (xi, r["relmse"]), fontsize=7, xytext=(3, 3), textcoords="offset points")
+ax.set(xscale="log", yscale="log", xlabel="render + denoise time (s)", ylabel="RelMSE")
+ax.grid(True, which="both", alpha=0.3); ax.legend(fontsize=8)"""),
+        ("md", "How to read it: a point left of and below the dashed raw curve is worth its time: the same error "
+               "costs less than rendering more samples, or the same time buys less error. A method's points are "
+               "its 4, 16 and 64 spp inputs; the horizontal distance between a method and the raw curve at equal "
+               "error is the render time it saves. Times are medians of 5 runs after a warm-up, compile apart, on "
+               "this machine (docs/metrics.md); the same folder holds `viewer.html` to look at the images."),
+    ],
+    "train_your_own": [
+        ("md", "# Train a learned method on your own renders\n\nRender a tiny training set with data_gen, "
+               "train LBF for a few steps from Python with validation on scenes it never trains on, then load "
+               "the best weights like shipped ones. (A real run: docs/results/lbf.md; this one is a smoke run "
+               "of a few minutes.)"),
+        ("code", SETUP),
+        ("code", """\
+train_dir, val_dir = WORK / "train", WORK / "val"
+data_gen.generate_dataset("mixed", 3, train_dir, width=32, spp=(4, 8), instances=1, ref_spp=256, seed=0, progress=False)
+data_gen.generate_dataset("mixed", 1, val_dir, width=32, spp=(4, 8), instances=1, ref_spp=256, seed=1000, progress=False)
+print(sorted(p.name for p in train_dir.iterdir()))"""),
+        ("code", """\
+from jaxdenoise.methods import lbf
+from jaxdenoise.train import train
+config = lbf.Config(radius=5, train_spps=(4, 8), train_crop=24, train_scenes_per_step=2)
+summary = train("lbf", train_dir, WORK / "run", steps=60, config=config, optimizer="adam", learning_rate=1e-2,
+                val_data=val_dir, validate_every=20, progress=False)
+print(summary["line"])
+for v in summary["validation"]:
+    print(f"step {v['step']:3d}: validation RelMSE {v['relmse']:.4f}")"""),
+        ("code", """\
+infer = jd.load("lbf", WORK / "run" / "best")   # the params with the lowest validation error, and their config
+frame, _ = jd.read_buffers(val_dir / "scene_0000" / "spp0004_00.exr")
+ref = jd.read_image(val_dir / "scene_0000" / "reference.exr")
+from jaxdenoise import metrics
+print("input RelMSE", float(metrics.relmse(frame.color, ref)), "| denoised", float(metrics.relmse(infer(frame), ref)))"""),
+    ],
+    "stability_and_leave_out": [
+        ("md", "# Stiff inputs, clear errors, and leaving out what a scene does not need\n\nEvery method is "
+               "fed fireflies of 1e6, an all-black frame and a frame with NaN: the output stays finite, or the "
+               "call fails with an error that says what is wrong. Then: which buffers each method needs, and "
+               "the render time saved by rendering only those."),
+        ("code", SETUP),
+        ("code", """\
+from jaxdenoise.methods import available, get
+shot = WORK / "s"
+data_gen.render_shot(data_gen.default_scene(width=64, height=64), shot, spp=[4], ref_spp=0,
+                     methods=jd.method_names(), seed=0, progress=False)
+frame, _ = jd.read_buffers(shot / "spp0004_00.exr")
+fire = frame.color.copy(); fire[10, 10] = 1e6
+cases = {"firefly 1e6": frame.replace(color=fire), "all black": frame.replace(color=0 * frame.color),
+         "NaN row": frame.replace(color=np.where(np.arange(64)[:, None, None] == 5, np.nan, frame.color))}
+for m, why in available().items():
+    if why:
+        continue
+    line = []
+    for name, b in cases.items():
+        try:
+            out = jd.denoise(b, method=m)
+            line.append(f"{name}: finite={bool(np.isfinite(out).all())}, max {float(np.nanmax(out)):.3g}")
+        except Exception as e:
+            line.append(f"{name}: {type(e).__name__}: {str(e)[:70]}")
+    print(f"{m:11s} " + " | ".join(line))"""),
+        ("code", """\
+for m in jd.method_names():
+    print(f"{m:11s} needs {sorted(get(m).needs())}")"""),
+        ("code", """\
+import json
+timings = {}
+for label, methods in (("gaussian only", ["gaussian"]), ("lbf", ["lbf"]), ("every buffer", None)):
+    d = WORK / label.replace(" ", "_")
+    rec = data_gen.render_shot(data_gen.default_scene(width=128, height=128), d, spp=[16], ref_spp=0,
+                               methods=methods, seed=0, progress=False)
+    f = rec["files"]["spp0016_00.exr"]
+    timings[label] = f["seconds"]
+    print(f"{label:13s}: {len(f['fields'])} buffers, {f['seconds']:.3f} s (Dr.Jit compilation excluded: "
+          f"{f['compile_seconds']:.3f} s apart)")
+print(f"leaving out what gaussian does not need saves {100 * (1 - timings['gaussian only'] / timings['every buffer']):.0f} % "
+      "of the render time")"""),
+    ],
+}
+
+
+def build(name: str) -> Path:
+    import nbformat
+    from nbclient import NotebookClient
+
+    import jaxdenoise
+
+    nb = nbformat.v4.new_notebook()
+    nb.cells = [nbformat.v4.new_markdown_cell(src) if kind == "md" else nbformat.v4.new_code_cell(src)
+                for kind, src in NOTEBOOKS[name]]
+    nb.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
+    t0 = time.perf_counter()
+    NotebookClient(nb, timeout=900, kernel_name="python3", resources={"metadata": {"path": str(HERE)}}).execute()
+    nb.metadata["jaxdenoise"] = {"version": jaxdenoise.__version__, "executed_seconds": round(time.perf_counter() - t0, 1)}
+    path = HERE / f"{name}.ipynb"
+    tmp = path.with_name(f".{path.name}.tmp")
+    nbformat.write(nb, tmp)
+    tmp.replace(path)
+    return path
+
+
+if __name__ == "__main__":
+    for n in (sys.argv[1:] or list(NOTEBOOKS)):
+        t = time.perf_counter()
+        print(f"{build(n)} ({time.perf_counter() - t:.0f} s)", flush=True)

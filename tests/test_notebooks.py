@@ -1,0 +1,47 @@
+"""The committed notebooks (docs/notebooks, built by docs/notebooks/build.py): every one has outputs,
+no error cell, and was executed with the current jaxdenoise version; under `slow`, each is executed
+again top to bottom (nbclient) and must not fail."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+import jaxdenoise
+
+NB_DIR = Path(__file__).resolve().parents[1] / "docs" / "notebooks"
+NAMES = ("quickstart", "error_vs_time", "train_your_own", "stability_and_leave_out")
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_committed_notebook_is_executed_and_current(name):
+    nbformat = pytest.importorskip("nbformat")
+    nb = nbformat.read(NB_DIR / f"{name}.ipynb", as_version=4)
+    code = [c for c in nb.cells if c.cell_type == "code"]
+    assert code and all(c.get("execution_count") for c in code), "a code cell was never executed"
+    assert all(o.get("output_type") != "error" for c in code for o in c.get("outputs", [])), "an error cell"
+    assert any(c.get("outputs") for c in code)
+    assert nb.metadata["jaxdenoise"]["version"] == jaxdenoise.__version__  # re-run build.py after a release
+
+
+def test_notebooks_are_the_builder_sources():
+    """The committed cells are exactly build.py's sources (edit build.py, then rebuild)."""
+    nbformat = pytest.importorskip("nbformat")
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("nb_build", NB_DIR / "build.py")
+    build = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(build)
+    for name in NAMES:
+        nb = nbformat.read(NB_DIR / f"{name}.ipynb", as_version=4)
+        assert [c.source for c in nb.cells] == [src for _, src in build.NOTEBOOKS[name]]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", NAMES)
+def test_notebook_runs_top_to_bottom(name):
+    nbformat = pytest.importorskip("nbformat")
+    from nbclient import NotebookClient
+
+    nb = nbformat.read(NB_DIR / f"{name}.ipynb", as_version=4)
+    NotebookClient(nb, timeout=900, kernel_name="python3", resources={"metadata": {"path": str(NB_DIR)}}).execute()
