@@ -503,4 +503,6 @@ def one_line(report: dict) -> str:
     return (f"bench: {len(report['records'])} record(s), {report['config']['shots']} shot(s), "
             f"{len({r['method'] for r in rows})} method(s) in {report['config']['wall_seconds']:.1f} s; "
             f"lowest RelMSE {best['relmse']:.4g} by {best['method']} at {best['spp']} spp"
+            + (f"; scored on Dask {report['config']['scheduler']} ({report['config']['dask_workers']} worker(s)), "
+               f"timed {report['config']['timing']}" if report["config"].get("scheduler") else "")
             + (f"; {len(report['skipped'])} skipped" if report["skipped"] else ""))

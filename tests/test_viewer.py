@@ -118,9 +118,24 @@ def run_selftest(page: Path, screenshot: Path | None = None) -> dict:
     return json.loads(m.group(1).replace("&quot;", '"').replace("&amp;", "&"))
 
 
+@pytest.fixture(scope="module")
+def one_frame(tmp_path_factory):
+    root = tmp_path_factory.mktemp("one")
+    (root / "data" / "scene_0000").mkdir(parents=True)
+    make_shot(root / "data" / "scene_0000", synthetic_frame(16, 16, seed=1).color, {4: synthetic_frame(16, 16, seed=2)})
+    bench.run(root / "data", ["input", "gaussian"], root / "r", runs=5, progress=False)
+    return root / "r"
+
+
+def test_a_folder_with_one_frame_gives_a_page(one_frame):
+    page = _page_data((one_frame / "viewer.html").read_text())
+    assert len(page["frames"]) == 1 and [m["method"] for m in page["frames"][0]["methods"]] == ["input", "gaussian"]
+
+
 @pytest.mark.slow
-def test_viewer_in_headless_chromium(report, tmp_path):
-    rep, out = report
+@pytest.mark.parametrize("which", ["frames, a sequence and a failure", "one frame"])
+def test_viewer_in_headless_chromium(report, one_frame, tmp_path, which):
+    out = report[1] if which != "one frame" else one_frame
     res = run_selftest(out / "viewer.html", tmp_path / "shot.png")
     n_images = len(json.loads(re.search(r"var IMAGES = (\{.*?\});\n", (out / "viewer.html").read_text(), re.S).group(1)))
     assert res["errors"] == [] and res["undecoded"] == [] and res["images"] == n_images > 0
