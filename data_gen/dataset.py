@@ -48,7 +48,7 @@ def generate_dataset(family: str, count: int, out: str | os.PathLike, *, width: 
     ``workers`` (`data_gen.cluster`); the output is the same files."""
     import json
 
-    from jaxdenoise.fsutil import write_json
+    from jaxdenoise.fsutil import remove_stale_temporaries, write_json
 
     from .scenes import ALL_FAMILIES
 
@@ -63,6 +63,7 @@ def generate_dataset(family: str, count: int, out: str | os.PathLike, *, width: 
     height = width if height is None else height
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    remove_stale_temporaries(out)  # a manifest temporary of a killed run
     mpath = out / MANIFEST
     manifest = json.loads(mpath.read_text()) if mpath.exists() else {}
     manifest.setdefault("scenes", {})

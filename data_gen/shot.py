@@ -161,7 +161,7 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
     ``ref_spp=0`` skips the reference. Finished files are skipped (resumable).
     """
     from jaxdenoise.buffers import Buffers
-    from jaxdenoise.fsutil import write_json
+    from jaxdenoise.fsutil import remove_stale_temporaries, write_json
     from jaxdenoise.io import write_buffers
 
     spp = [int(s) for s in (spp if isinstance(spp, (list, tuple)) else [spp])]
@@ -181,6 +181,7 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
     requested = requested_fields(methods, buffers)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    remove_stale_temporaries(out_dir)  # left by a writer that was killed: the resumed run redoes them
     record = _read_record(out_dir)
     files: dict[str, dict] = dict(record.get("files", {}))
     base_key = {"scene": label, "seed": int(seed), "width": w, "height": h, "max_depth": settings.max_depth,

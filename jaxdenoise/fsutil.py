@@ -6,8 +6,39 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
+import socket
 from pathlib import Path
 from typing import Any, Iterator
+
+
+_HOST = re.sub(r"[^A-Za-z0-9_]", "_", socket.gethostname())[:40] or "host"
+_TMP = re.compile(r"^\..+\.tmp-(?P<host>[A-Za-z0-9_]+)-(?P<pid>\d+)(\.[^.]*)?$")
+
+
+def remove_stale_temporaries(folder: str | os.PathLike) -> list[Path]:
+    """Delete the temporaries `atomic_path` left in ``folder`` (not recursive) when its writer was
+    killed (SIGKILL skips the clean-up): those written on this host by a process that no longer
+    exists. A temporary of a live process, or of another host sharing the folder, is kept.
+    Returns what was removed."""
+    removed = []
+    folder = Path(folder)
+    if not folder.is_dir():
+        return removed
+    for p in folder.iterdir():
+        m = _TMP.match(p.name)
+        if not m or m["host"] != _HOST or not p.is_file():
+            continue
+        try:
+            os.kill(int(m["pid"]), 0)
+            continue  # the writer is alive
+        except ProcessLookupError:
+            pass
+        except PermissionError:
+            continue  # alive, another user's
+        p.unlink(missing_ok=True)
+        removed.append(p)
+    return removed
 
 
 @contextlib.contextmanager
@@ -19,7 +50,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp{os.getpid()}{path.suffix}")
+    tmp = path.with_name(f".{path.stem}.tmp-{_HOST}-{os.getpid()}{path.suffix}")
     try:
         yield tmp
         os.replace(tmp, path)

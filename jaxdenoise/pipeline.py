@@ -47,6 +47,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from .buffers import CHANNELS, IMAGE_FIELDS
+from .fsutil import atomic_path, write_json
 
 __all__ = ["build_cache", "Cache", "ExportedCache", "load_export", "augment", "rotate90", "flip_lr",
            "RADIANCE", "BOUNDED"]
@@ -61,9 +62,8 @@ CACHE_VERSION = 1
 
 
 def _save_npy(path: Path, array: np.ndarray) -> None:
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}.npy")
-    np.save(tmp, array)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:  # keeps the .npy suffix, so np.save adds none
+        np.save(tmp, array)
 
 
 def _channels(fields: Sequence[str]) -> dict[str, slice]:
@@ -199,9 +199,7 @@ def build_cache(data_dir: str | os.PathLike, fields: Sequence[str], cache_dir: s
                        "frame": shot.frame})
     index = {"version": CACHE_VERSION, "fields": fields, "data_dir": str(data_dir), "frames": frames,
              "sequences": len(seqs), "shots": len(singles)}
-    tmp = index_path.with_name(".index.json.tmp")
-    tmp.write_text(json.dumps(index, indent=1))
-    os.replace(tmp, index_path)
+    write_json(index_path, index)
     return Cache(folder)
 
 
@@ -304,9 +302,8 @@ class Cache:
                    "frames": frames, "fields": self.fields, "max_mib": max_mib}
         enc["summary"] = np.frombuffer(json.dumps(summary).encode(), np.uint8)
         path = Path(path)
-        tmp = path.with_name(f".{path.name}.tmp{os.getpid()}.npz")
-        np.savez_compressed(tmp, **enc)
-        os.replace(tmp, path)
+        with atomic_path(path) as tmp:
+            np.savez_compressed(tmp, **enc)
         summary["bytes"] = path.stat().st_size
         return summary
 

@@ -31,3 +31,23 @@ def test_save_is_atomic_and_never_pickles(tmp_path):
     assert (tmp_path / "ck" / "params.npz").read_bytes() == before
     assert sorted(p.name for p in (tmp_path / "ck").iterdir()) == ["config.json", "params.npz"]
     json.loads((tmp_path / "ck" / "config.json").read_text())
+
+
+def test_stale_temporaries_of_dead_writers_are_removed(tmp_path):
+    """A writer killed inside `atomic_path` leaves its temporary; the next run removes it, but never
+    a live process's (tolerance: exact file sets)."""
+    import os
+    import subprocess
+    import sys
+
+    from jaxdenoise import fsutil
+
+    code = ("import os, sys; from jaxdenoise.fsutil import atomic_path\n"
+            "with atomic_path(sys.argv[1]) as t:\n    open(t, 'w').write('partial'); os._exit(9)")
+    subprocess.run([sys.executable, "-c", code, str(tmp_path / "a.json")])
+    left = [p.name for p in tmp_path.iterdir()]
+    assert len(left) == 1 and left[0].startswith(".a.tmp-") and not (tmp_path / "a.json").exists()
+    live = tmp_path / f".b.tmp-{fsutil._HOST}-{os.getpid()}.json"  # this (live) process's
+    live.write_text("in progress")
+    removed = fsutil.remove_stale_temporaries(tmp_path)
+    assert [p.name for p in removed] == left and sorted(p.name for p in tmp_path.iterdir()) == [live.name]

@@ -63,6 +63,7 @@ def test_a_worker_dying_mid_shot_costs_only_that_shot(serial, tmp_path):
     assert _files(tmp_path / "d") == _files(out_s)  # complete and correct all the same
 
 
+@pytest.mark.slow
 @pytest.mark.mitsuba
 def test_interrupted_client_resumes(serial, tmp_path):
     out_s, _ = serial
@@ -102,6 +103,7 @@ def test_without_dask_the_error_names_the_extra(monkeypatch):
         cluster.connect("local:1")
 
 
+@pytest.mark.slow
 def test_bench_scores_on_dask_equal_local_scores(tmp_path):
     """`bench --scheduler local:2`: the quality columns computed by the workers equal a local run's
     (tolerance 1e-6 relative: the same programs on the same inputs); timings come from the client
@@ -133,6 +135,7 @@ def test_bench_scores_on_dask_equal_local_scores(tmp_path):
     assert "No `error_vs_time.png`" in (tmp_path / "q" / "results.md").read_text()
 
 
+@pytest.mark.slow
 @pytest.mark.mitsuba
 def test_dask_cli_recipe_on_localhost(serial, tmp_path):
     """The documented recipe: a scheduler and a worker started with the `dask` CLI, then
