@@ -14,8 +14,8 @@ Measured in one run, each after a warm-up, median of ``--runs`` (compile time ap
 - a training step (forward + backward + Adam) on a batch of 4 x 7 frames of 128x128 (28 crops, as the
   per-frame U-Net sees a 7-frame sequence batch): crops per second and GFLOP/s;
 - with ``--data DIR``: the training-data pipeline (`jaxdenoise.pipeline`) delivering the same 28
-  augmented crops of colour, albedo, normal, depth and roughness from its decoded cache, batches per
-  second against the training step's rate.
+  augmented crops of colour, albedo, normal and depth (the 4-spp renders) from its decoded cache,
+  batches per second against the training step's rate.
 
     JAX_PLATFORMS=cpu python experiments/bench_conv.py --out docs/results
 
@@ -162,9 +162,10 @@ def main() -> None:
     if args.data:
         from jaxdenoise import pipeline
 
-        fields = ["albedo", "normal", "depth", "roughness"]
+        fields = ["albedo", "normal", "depth"]  # RAE's inputs that every data_gen frame has (roughness is
+        # left out where a scene's roughness is constant)
         t = time.perf_counter()
-        cache = pipeline.build_cache(args.data, fields, args.cache)
+        cache = pipeline.build_cache(args.data, fields, args.cache, spps=(4,))
         build_s = time.perf_counter() - t
         ts = []
         for step in range(args.runs * 4):
