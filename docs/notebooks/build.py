@@ -125,7 +125,7 @@ from jaxdenoise.train import train
 config = lbf.Config(radius=5, train_spps=(4, 8), train_crop=24, train_scenes_per_step=2)
 summary = train("lbf", train_dir, WORK / "run", steps=60, config=config, optimizer="adam", learning_rate=1e-2,
                 val_data=val_dir, validate_every=20, progress=False)
-print(summary["line"])
+print(summary["line"].replace(str(WORK), "WORK"))  # WORK: this notebook's temporary folder
 for v in summary["validation"]:
     print(f"step {v['step']:3d}: validation RelMSE {v['relmse']:.4f}")"""),
         ("code", """\
