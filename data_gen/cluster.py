@@ -83,7 +83,7 @@ def _task(job: dict) -> tuple[str, dict]:
         os._exit(1)
     name, rec = _render_one(job)
     rec["attempts"] = attempts
-    rec["worker_threads"] = threads
+    rec["drjit_threads"] = int(dr.thread_count())  # what the render ran with (= the worker's threads)
     counter.unlink(missing_ok=True)
     return name, rec
 

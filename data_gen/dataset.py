@@ -109,7 +109,7 @@ def generate_dataset(family: str, count: int, out: str | os.PathLike, *, width: 
             for name, rec in run_jobs(jobs, scheduler):
                 run["workers"] = rec.pop("cluster_workers")
                 run["retries"] = run.get("retries", 0) + rec.pop("attempts") - 1
-                rec.pop("worker_threads", None)
+                run["drjit_threads"] = max(run.get("drjit_threads", 0), rec.pop("drjit_threads"))
                 done(name, rec)
         elif workers == 1:
             for job in jobs:

@@ -50,6 +50,7 @@ def test_local_cluster_writes_the_serial_dataset(serial, tmp_path):
     assert _scenes(m) == _scenes(m_s)
     run = m["runs"][-1]
     assert run["scheduler"] == "local:2" and run["workers"] == 2 and run["retries"] == 0
+    assert run["drjit_threads"] == 1  # single-threaded workers render with one Dr.Jit thread
     assert not list((tmp_path / "d").rglob(".attempts-*"))
 
 
