@@ -1,7 +1,8 @@
 """Rendering datasets on a Dask cluster (``python -m data_gen dataset ... --scheduler ADDRESS|local[:N]``).
 
 Dask (``dask.distributed``, the ``cluster`` extra: ``pip install -e '.[cluster]'``) schedules one
-task per shot; this module only connects, submits and collects:
+task per shot; this module submits and collects (connecting is `jaxdenoise.cluster.connect`, shared with
+`bench --scheduler`):
 
 - ``local[:N]`` starts a `distributed.LocalCluster` of N single-threaded worker processes (default:
   one per core) on this machine; any other value is the address of a running scheduler
@@ -26,37 +27,9 @@ import os
 from pathlib import Path
 from typing import Iterator
 
+from jaxdenoise.cluster import EXTRA_HINT, connect, distributed_module
+
 __all__ = ["connect", "run_jobs", "EXTRA_HINT"]
-
-EXTRA_HINT = "pip install -e '.[cluster]' (Dask's distributed scheduler)"
-
-
-def _distributed():
-    try:
-        import distributed
-    except ImportError as e:
-        raise ImportError(f"--scheduler needs Dask, which is not installed ({e}); install the cluster extra: "
-                          f"{EXTRA_HINT}") from None
-    return distributed
-
-
-def connect(spec: str):
-    """(client, local cluster or None) for ``local[:N]`` or a scheduler address."""
-    distributed = _distributed()
-    if spec == "local" or spec.startswith("local:"):
-        n = spec.partition(":")[2]
-        try:
-            workers = int(n) if n else (os.cpu_count() or 1)
-        except ValueError:
-            raise ValueError(f"--scheduler {spec!r}: expected local or local:N with N an integer") from None
-        if workers < 1:
-            raise ValueError(f"--scheduler {spec!r}: N must be >= 1")
-        env = {"OMP_NUM_THREADS": "1", "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1",
-               "JAX_PLATFORMS": "cpu"}
-        cluster = distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                           dashboard_address=None, silence_logs=40, env=env)
-        return distributed.Client(cluster), cluster
-    return distributed.Client(spec), None
 
 
 def _task(job: dict) -> tuple[str, dict]:
@@ -91,7 +64,7 @@ def _task(job: dict) -> tuple[str, dict]:
 def run_jobs(jobs: list[dict], spec: str) -> Iterator[tuple[str, dict]]:
     """Submit one task per job to the cluster ``spec``; yield ``(name, record)`` as shots finish.
     The records carry ``attempts`` (1 when the shot rendered on its first try)."""
-    distributed = _distributed()
+    distributed = distributed_module()
     client, cluster = connect(spec)
     try:
         info = client.scheduler_info(n_workers=-1) if "n_workers" in _params(client.scheduler_info) \

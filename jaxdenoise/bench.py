@@ -159,21 +159,12 @@ def _score_task(render: str, reference: str, methods: list[str], weights: dict) 
 def _distributed_scores(singles: list[Shot], methods: list[str], weights: dict, spec: str, progress: bool) -> dict:
     """{(render path, method): scores or {"skipped": why}} computed on the Dask cluster ``spec``
     (``local[:N]`` or an address; every worker must see the data folder and the weights)."""
-    try:
-        import distributed
-    except ImportError as e:
-        raise ImportError(f"--scheduler needs Dask ({e}); install the cluster extra: pip install -e '.[cluster]'") from None
     from tqdm import tqdm
 
-    if spec == "local" or spec.startswith("local:"):
-        n = int(spec.partition(":")[2] or os.cpu_count() or 1)
-        cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-                                           silence_logs=40, env={"OMP_NUM_THREADS": "1", "JAX_PLATFORMS": "cpu",
-                                                                 "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false "
-                                                                              "intra_op_parallelism_threads=1"})
-        client = distributed.Client(cluster)
-    else:
-        cluster, client = None, distributed.Client(spec)
+    from .cluster import connect, distributed_module
+
+    distributed = distributed_module()
+    client, cluster = connect(spec)
     jobs = [(str(r.path), str(s.reference)) for s in singles for r in s.renders]
     out = {}
     try:
