@@ -49,7 +49,7 @@ import numpy as np
 from .buffers import CHANNELS, IMAGE_FIELDS
 from .fsutil import atomic_path, write_json
 
-__all__ = ["build_cache", "Cache", "ExportedCache", "load_export", "augment", "rotate90", "flip_lr",
+__all__ = ["build_cache", "Cache", "ExportedCache", "load_export", "open_training_data", "default_cache_dir", "augment", "rotate90", "flip_lr",
            "RADIANCE", "BOUNDED"]
 
 # Fields that scale with radiance (colour modulation multiplies them by m; variances by m^2).
@@ -284,13 +284,34 @@ class Cache:
             items.append(_augment_maybe(item, rng, aug))
         return _stack(items)
 
-    def export(self, path: str | os.PathLike, *, n: int, size: int, rng: np.random.Generator,
-               frames: int | None = None, max_mib: float = 60.0) -> dict:
+    def whole(self, spps: Sequence[int] | None = None) -> dict[str, np.ndarray]:
+        """Every cached render (at ``spps``, or all) whole, in cache order, stacked like `crops`
+        (the renders must share one size)."""
+        pool = [i for i, f in enumerate(self.frames) if spps is None or f["spp"] in set(spps)]
+        if not pool:
+            raise ValueError(f"{self.folder}: no cached render" + (f" at spp {list(spps)}" if spps else ""))
+        sizes = {self.array(self.frames[i]["array"]).shape[:2] for i in pool}
+        if len(sizes) != 1:
+            raise ValueError(f"{self.folder}: renders of several sizes {sorted(sizes)}; whole frames need one")
+        (h, w), = sizes
+        return _stack([self._item(i, 0, 0, max(h, w)) for i in pool])
+
+    def export(self, path: str | os.PathLike, *, n: int, size: int = 0, rng: np.random.Generator | None = None,
+               frames: int | None = None, max_mib: float = 60.0, spps: Sequence[int] | None = None,
+               whole: bool = False) -> dict:
         """Write ``n`` crops (or ``frames``-long sequence crops) without augmentation to one compact
         ``.npz`` (module docstring), keeping as many as fit in ``max_mib``; returns its summary
-        (``count``, ``bytes``, ``per_item_bytes``), also stored in the file."""
-        draw = (lambda k: self.crops(k, size, rng, augment=False)) if frames is None else \
-            (lambda k: self.sequences(k, size, rng, frames=frames, augment=False))
+        (``count``, ``bytes``, ``per_item_bytes``), also stored in the file. ``spps`` restricts the
+        renders; ``whole=True`` exports the first ``n`` renders whole (`whole`) instead of random
+        crops (validation frames; training sets small enough to travel as they are)."""
+        if whole:
+            every = self.whole(spps)
+            size = int(every["color"].shape[1])
+            draw = lambda k: {f: v[:k] for f, v in every.items()}
+        elif frames is None:
+            draw = lambda k: self.crops(k, size, rng, spps=spps, augment=False)
+        else:
+            draw = lambda k: self.sequences(k, size, rng, frames=frames, augment=False)
         probe = _encode(draw(1))
         per_item = sum(a.nbytes for a in probe.values())
         fit = int(max_mib * 2**20 // max(per_item, 1))
@@ -299,7 +320,9 @@ class Cache:
             raise ValueError(f"export: one item takes {per_item / 2**20:.1f} MiB, more than max_mib={max_mib}")
         enc = _encode(draw(count))
         summary = {"count": count, "requested": int(n), "fit": fit, "per_item_bytes": per_item, "size": size,
-                   "frames": frames, "fields": self.fields, "max_mib": max_mib}
+                   "frames": frames, "fields": self.fields, "max_mib": max_mib, "whole": bool(whole),
+                   "spps": None if spps is None else [int(s) for s in spps],
+                   "source": str(json.loads((self.folder / "index.json").read_text())["data_dir"])}
         enc["summary"] = np.frombuffer(json.dumps(summary).encode(), np.uint8)
         path = Path(path)
         with atomic_path(path) as tmp:
@@ -341,6 +364,7 @@ class ExportedCache:
     """The crops or sequence crops of an export, decoded to float32, sampled like `Cache`'s."""
 
     def __init__(self, path: str | os.PathLike) -> None:
+        self.path = Path(path)
         z = np.load(path)
         self.summary = json.loads(bytes(z["summary"]).decode())
         self.items: dict[str, np.ndarray] = {}
@@ -360,3 +384,46 @@ class ExportedCache:
         idx = rng.integers(0, self.count, size=int(n))
         items = [{f: v[i] for f, v in self.items.items()} for i in idx]
         return _stack([_augment_maybe(it, rng, aug) for it in items])
+
+    def crops(self, n: int, size: int, rng: np.random.Generator, *, spps: Sequence[int] | None = None,
+              **aug: Any) -> dict[str, np.ndarray]:
+        """As `Cache.crops`: ``n`` random ``size x size`` windows of random exported items (at
+        ``spps`` if given), augmented; the same call on a cache or on its export."""
+        if self.summary.get("frames"):
+            raise ValueError(f"{self.path}: holds sequence crops; crops() needs single frames")
+        pool = np.arange(self.count) if spps is None else np.flatnonzero(np.isin(self.items["spp"], list(spps)))
+        if pool.size == 0:
+            raise ValueError(f"{self.path}: no exported item" + (f" at spp {list(spps)}" if spps else ""))
+        h, w = self.items["color"].shape[1:3]
+        c = min(int(size), h, w)
+        items = []
+        for _ in range(int(n)):
+            i = int(pool[int(rng.integers(0, pool.size))])
+            y, x = int(rng.integers(0, h - c + 1)), int(rng.integers(0, w - c + 1))
+            item = {f: (v[i] if f == "spp" else v[i, y:y + c, x:x + c]) for f, v in self.items.items()}
+            items.append(_augment_maybe(item, rng, aug))
+        return _stack(items)
+
+
+def default_cache_dir() -> Path:
+    """Where training caches go unless a caller names a folder: ``$JAXDENOISE_CACHE``, else
+    ``~/.cache/jaxdenoise/pipeline``."""
+    env = os.environ.get("JAXDENOISE_CACHE")
+    return Path(env) if env else Path.home() / ".cache" / "jaxdenoise" / "pipeline"
+
+
+def open_training_data(source: str | os.PathLike, fields: Sequence[str], *, spps: Sequence[int] | None = None,
+                       cache_dir: str | os.PathLike | None = None, progress: bool = False) -> "Cache | ExportedCache":
+    """A data_gen folder (decoded once into a `Cache` under ``cache_dir``) or an export ``.npz``
+    (`load_export`; it must hold ``fields``): the one entry point of the networks' ``make_dataset``,
+    so the same training command runs here and on a machine that has only the export."""
+    source = Path(source)
+    if source.suffix == ".npz":
+        if not source.is_file():
+            raise FileNotFoundError(f"{source}: no such export file")
+        ex = load_export(source)
+        missing = [f for f in ["color", *fields, "reference"] if f not in ex.items]
+        if missing:
+            raise ValueError(f"{source}: the export lacks {missing} (it holds {sorted(ex.items)})")
+        return ex
+    return build_cache(source, fields, cache_dir or default_cache_dir(), spps=spps, progress=progress)

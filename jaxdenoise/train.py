@@ -8,7 +8,9 @@ What a trainable method module provides (besides ``Config``, ``init``, ``apply``
   (anything that does not depend on the parameters, e.g. LBF's secondary features);
 - ``batch(dataset, step, config, rng) -> batch``: the mini-batch of one step; ``rng`` is a
   ``numpy.random.Generator`` seeded from ``(seed, step)``, so a resumed run draws the same
-  batches as an uninterrupted one;
+  batches as an uninterrupted one (being a function of the step alone, the next ``PREFETCH``
+  batches are drawn on a worker thread while the device runs the current step; it must not
+  mutate ``dataset``);
 - optionally ``init_from_data(key, config, dataset) -> params`` (e.g. input normalization
   statistics from the training set; default ``init(key, config)``);
 - optionally ``TRAIN``: a dict of `TrainConfig` defaults for the method (e.g. its optimizer);
@@ -61,6 +63,7 @@ import functools
 import inspect
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Callable
 
@@ -79,6 +82,10 @@ __all__ = ["TrainConfig", "TrainError", "train", "restore_like", "make_optimizer
 CHECKPOINT_DIR = "checkpoint"
 WEIGHTS_DIR = "weights"
 BEST_DIR = "best"
+
+
+# Batches drawn ahead on a worker thread (the batch of step t depends on (seed, t) only).
+PREFETCH = 2
 
 
 class TrainError(RuntimeError):
@@ -249,10 +256,12 @@ def load_validation(method: Any, data_dir: str | Path, spps: Any = None) -> list
     "references"}`` (its first render name at that rate in every frame), so that `validate` steps
     recurrent and windowed methods through it."""
     from .api import prepare
-    from .data import discover, renders_by_spp, sequences
-    from .io import read_buffers, read_image
 
     wanted = None if spps is None else {int(s) for s in spps}
+    if Path(data_dir).suffix == ".npz":
+        return _validation_from_export(method, Path(data_dir), wanted)
+    from .data import discover, renders_by_spp, sequences
+    from .io import read_buffers, read_image
 
     def load(path, ref):
         buffers, _ = read_buffers(path)
@@ -281,6 +290,35 @@ def load_validation(method: Any, data_dir: str | Path, spps: Any = None) -> list
                            "frames": [load(p, r) for p, r in zip(paths, refs)]})
     if not frames:
         raise TrainError(f"{data_dir}: no validation render" + (f" at spp {sorted(wanted)}" if wanted else ""))
+    return frames
+
+
+def _validation_from_export(method: Any, path: Path, wanted: set | None) -> list[dict]:
+    """Validation frames from an export of whole frames (`pipeline.Cache.export(whole=True)`): the
+    machine that trains may have no OpenImageIO (a GPU machine)."""
+    from .api import prepare
+    from .buffers import Buffers
+    from .pipeline import load_export
+
+    if not path.is_file():
+        raise TrainError(f"{path}: no such validation export")
+    ex = load_export(path)
+    if not ex.summary.get("whole"):
+        raise TrainError(f"{path}: holds random crops; validation needs whole frames (export with whole=True)")
+    frames = []
+    for i in range(ex.count):
+        spp = int(ex.items["spp"][i])
+        if wanted is not None and spp not in wanted:
+            continue
+        where = f"{path}#{i}"
+        fields = {f: v[i] for f, v in ex.items.items() if f not in ("reference", "spp")}
+        try:
+            buffers = prepare(method, Buffers(**fields, spp=spp), where=where)
+        except ValueError as e:
+            raise TrainError(f"{where}: cannot validate {method.name} on it: {e}") from None
+        frames.append({"file": where, "spp": spp, "buffers": buffers, "reference": ex.items["reference"][i]})
+    if not frames:
+        raise TrainError(f"{path}: no validation frame" + (f" at spp {sorted(wanted)}" if wanted else ""))
     return frames
 
 
@@ -436,12 +474,21 @@ def train(method_name: str, data_dir: str | Path, out_dir: str | Path, *, resume
     bad_run = 0
     step = start
     t_loop = time.perf_counter()
+
+    def draw(s: int) -> Any:  # a pure function of (seed, step): the same batches on resume
+        return module.batch(dataset, s, method.config, np.random.default_rng([int(seed), s]))
+
+    # The next PREFETCH batches are drawn on a worker thread while the device runs the current step.
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="jaxdenoise-batches")
+    pending: dict[int, Any] = {}
     try:
         if init_from is not None and start == 0:
             run_validation(0)  # the starting weights' score: fine-tuning keeps them unless it beats them
         for step in range(start, tc.steps):
-            rng = np.random.default_rng([int(seed), step])
-            b = shard_batch(module.batch(dataset, step, method.config, rng))
+            for s in range(step, min(step + PREFETCH, tc.steps)):
+                if s not in pending:
+                    pending[s] = pool.submit(draw, s)
+            b = shard_batch(pending.pop(step).result())
             if groups is None:
                 params, opt_state, value, ok = step_fn(params, opt_state, b)
             else:  # parameter groups in alternation: step t updates group t mod (number of groups)
@@ -470,6 +517,7 @@ def train(method_name: str, data_dir: str | Path, out_dir: str | Path, *, resume
             step = max(start, tc.steps)
         run_validation(step)
     finally:
+        pool.shutdown(wait=True, cancel_futures=True)
         if bar is not None:
             bar.close()
     save(step)

@@ -159,8 +159,17 @@ def test_bilinear_init_upsamples_a_ramp_exactly():
     np.testing.assert_allclose(up[inner], want[inner], atol=1e-5)
     _, ups = nn.Upsample(2, "bilinear")
     np.testing.assert_allclose(np.asarray(ups({}, ramp))[inner], up[inner], atol=1e-5)
-    with pytest.raises(ValueError, match="as many input as output channels"):
-        nn.ConvTranspose(3, 4, w_init=nn.bilinear_init(2))[0](jax.random.PRNGKey(0), (4, 4, 2))
+    # narrowing (3 -> 2 channels, DEMC's decoder): the first two channels up-sample as above
+    init3, apply3 = nn.ConvTranspose(2, 4, stride=2, bias=False, w_init=nn.bilinear_init(2))
+    _, p3 = init3(jax.random.PRNGKey(0), (6, 7, 3))
+    ramp3 = np.concatenate([ramp, np.full((6, 7, 1), 9.0, np.float32)], -1)
+    np.testing.assert_allclose(np.asarray(apply3(p3, ramp3))[inner], want[inner], atol=1e-5)
+    # widening (2 -> 3): the extra output channel starts at zero
+    init4, apply4 = nn.ConvTranspose(3, 4, stride=2, bias=False, w_init=nn.bilinear_init(2))
+    _, p4 = init4(jax.random.PRNGKey(0), (6, 7, 2))
+    up4 = np.asarray(apply4(p4, ramp))
+    np.testing.assert_allclose(up4[inner][..., :2], want[inner], atol=1e-5)
+    assert np.all(up4[..., 2] == 0)
 
 
 def test_identity_init_passes_the_first_block_through():

@@ -31,6 +31,7 @@ _REGISTRY: dict[str, tuple[str, dict[str, Any]]] = {
     "nlm": ("jaxdenoise.methods.bilateral", {"filter": "nlm"}),
     "poisson-l2": ("jaxdenoise.methods.poisson", {"norm": "l2"}),
     "poisson-l1": ("jaxdenoise.methods.poisson", {"norm": "l1"}),
+    "demc": ("jaxdenoise.methods.demc", {}),
 }
 
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"

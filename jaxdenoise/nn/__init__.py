@@ -45,16 +45,19 @@ def uniform_init(scale: float = 0.5) -> Initializer:
     return init
 
 
-def glorot_uniform_init() -> Initializer:
-    """Glorot/Xavier uniform, U(-l, l) with l = sqrt(6 / (fan_in + fan_out)); the last two axes are
-    (in, out) and any leading axes a receptive field (a conv kernel HWIO: fan_in = kh kw c_in)."""
+def glorot_uniform_init(gain: float = 1.0) -> Initializer:
+    """Glorot/Xavier uniform, U(-l, l) with l = sqrt(6 gain / (fan_in + fan_out)); the last two axes
+    are (in, out) and any leading axes a receptive field (a conv kernel HWIO: fan_in = kh kw c_in).
+    ``gain`` multiplies the variance (2 compensates a ReLU's halving, as He et al. 2015 do)."""
+    if not gain > 0:
+        raise ValueError(f"glorot_uniform_init: gain must be > 0, got {gain}")
 
     def init(key: jax.Array, shape: tuple[int, ...]) -> jax.Array:
         rf = 1
         for n in shape[:-2]:
             rf *= int(n)
         fan_in, fan_out = rf * shape[-2], rf * shape[-1]
-        limit = (6.0 / (fan_in + fan_out)) ** 0.5
+        limit = (6.0 * gain / (fan_in + fan_out)) ** 0.5
         return jax.random.uniform(key, shape, jnp.float32, -limit, limit)
 
     return init

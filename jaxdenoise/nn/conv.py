@@ -61,19 +61,20 @@ def bilinear_init(stride: int = 2):
     """Kernel of a `ConvTranspose` (kernel k, ``stride``, default padding) that up-samples each
     channel bilinearly with half-pixel centres: ``w[i, j, c, o] = b[i] b[j] [c == o]`` with
     ``b[i] = 1 - |i - centre| / stride``, ``centre = (k - 1) / 2`` (the FCN kernel; for k = 4,
-    stride 2: b = (1/4, 3/4, 3/4, 1/4)). Needs c_in == c_out. Away from the border (one input pixel)
-    the result is exactly the bilinear interpolation; at the border the missing neighbour counts as 0."""
+    stride 2: b = (1/4, 3/4, 3/4, 1/4)). With c_in != c_out the channel map is the rectangular
+    identity (output channel o up-samples input channel o for o < min(c_in, c_out); other outputs
+    start at zero): DEMC's decoder narrows the channels at each level (docs/methods/demc.md). Away
+    from the border (one input pixel) the result is exactly the bilinear interpolation; at the border
+    the missing neighbour counts as 0."""
 
     def init(key: jax.Array, shape: tuple[int, ...]) -> jax.Array:
         kh, kw, cin, cout = shape
-        if cin != cout:
-            raise ValueError(f"bilinear_init: needs as many input as output channels, got HWIO {shape}")
 
         def taps(k):
             centre = (k - 1) / 2.0
             return np.maximum(0.0, 1.0 - np.abs(np.arange(k) - centre) / stride)
 
-        w = np.einsum("i,j,co->ijco", taps(kh), taps(kw), np.eye(cin))
+        w = np.einsum("i,j,co->ijco", taps(kh), taps(kw), np.eye(cin, cout))
         return jnp.asarray(w, jnp.float32)
 
     return init

@@ -1,0 +1,325 @@
+"""DEMC: the dual-encoder Monte Carlo denoiser of Yang, Liu, Huo, Wang, Chen 2019 ("DEMC: A Deep
+Dual-Encoder Network for Denoising Monte Carlo Rendering"), registered as ``demc``; its ablations
+of Sec. 4.4 are variants of the same module (``Config.variant``): ``"semc"`` (one encoder on the
+noisy colour concatenated with the fused detail map, widened to DEMC's parameter count, Fig. 4) and
+``"nosn"`` (DEMC without the feature-fusion sub-network: the feature encoder reads the 12 feature
+channels directly, Fig. 10 "DEMCnoSN").
+
+Network (Sec. 3.2, Fig. 3):
+
+- **feature fusion sub-network**: four 3x3 conv blocks on the 12 feature channels (shading normal,
+  world position, first- and second-hit albedo, Sec. 3.1), the first and last conv + ReLU, the two
+  middle ones conv + batch normalization + ReLU; its 3-channel output is the *detail map*;
+- **two encoders**, one on the gamma-compressed noisy colour (Eq. 4), one on the detail map; each
+  has five down-sampling units of three 3x3 convs + ReLU followed by 2x2 max pooling; the output of
+  a unit's convs (before pooling) is its level's skip tensor;
+- a **latent stage** (two 3x3 convs + ReLU) on the colour encoder's pooled output ("the
+  representation of the noisy images will be used to feed into the decoder network", Sec. 3.2);
+- a **decoder** of five 4x4 stride-2 deconvolutions + ReLU initialised as bilinear up-sampling; after
+  each, the **skip connection** of Eq. 2: the decoder, feature-encoder and colour-encoder tensors of
+  the level are concatenated and fused by a 1x1 conv + ReLU initialised by Eq. 3 (identity on the
+  decoder block, zero on the encoder blocks, zero bias: a fresh fusion passes the decoder through);
+- a 3x3 output conv to 3 channels, the inverse of Eq. 4 back to HDR.
+
+Inputs and loss (Sec. 4.2): colour compressed by Eq. 4, ``x^(1/gamma)``, gamma 2.2 (negative and
+non-finite radiance clamped to 0 first); the 12 features z-score normalized with the training set's
+mean and standard deviation (``params["norm"]``, stored with the weights, not trained), except the
+world position, normalized per frame by default (``position_norm``; docs/methods/demc.md says why
+and what was measured); the output mapped back by ``max(y, 0)^gamma``; loss = RelMSE in HDR with
+eps = 1e-3 (Eq. 5). Xavier initialisation of the encoder, latent and fusion convs (Sec. 4.2). The
+paper's channel widths are not legible: ours are ``Config.widths`` (docs/methods/demc.md gives the
+parameter count). Any input size: padded to a multiple of 32 and cropped back.
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import nn
+from ..buffers import Buffers
+from ..nn.state import call
+
+__all__ = ["Config", "needs", "init", "init_from_data", "apply", "forward", "loss", "make_dataset", "batch",
+           "inputs", "num_params", "widths_of", "FEATURES", "TRAIN", "FROZEN", "WEIGHTS"]
+
+# The 12 feature channels of Sec. 3.1, in the order they are stacked.
+FEATURES: tuple[str, ...] = ("normal", "position", "albedo", "albedo2")
+VARIANTS = ("demc", "semc", "nosn")
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """DEMC hyperparameters; paper values cited, our choices marked (docs/methods/demc.md)."""
+
+    variant: str = "demc"  # "demc" (Fig. 3), "semc" (Fig. 4), "nosn" (Fig. 10 DEMCnoSN)
+    widths: tuple[int, ...] = (24, 32, 48, 64, 96)  # channels of the five down-sampling units (ours)
+    fusion_width: int = 24  # channels inside the fusion sub-network (ours)
+    convs_per_unit: int = 3  # "three convolutional layers followed by a max-pooling layer" (Sec. 3.2)
+    latent_convs: int = 2  # the latent stage (ours: the count is not stated)
+    gamma: float = 2.2  # Eq. 4 (Sec. 4.2)
+    eps: float = 1e-3  # Eq. 5 (Sec. 4.2)
+    position_norm: str = "frame"  # "frame" (per-frame z-score) or "global" (training-set z-score)
+    bn_momentum: float = 0.9  # running statistics of the fusion sub-network's BatchNorm (ours)
+    xavier_gain: float = 1.0  # Xavier (Sec. 4.2) = 1; 2 is the ReLU-compensated variant (measured, demc.md)
+    # Training data (Sec. 4.1: 4-spp inputs); crop and batch are ours, sized to the machine.
+    train_spps: tuple[int, ...] = (4,)
+    train_crop: int = 64
+    train_batch: int = 16
+
+
+# Adam (Sec. 4.2; the learning-rate range is not legible: 1e-4 with a slow exponential decay, ours).
+TRAIN: dict[str, Any] = {"optimizer": "adam", "learning_rate": 1e-4, "schedule": "exponential",
+                         "schedule_every": 10000, "schedule_factor": 0.5, "steps": 2000, "checkpoint_every": 100}
+FROZEN: tuple[str, ...] = ("norm",)
+
+
+def WEIGHTS(config: Config) -> str:
+    return "demc" if config.variant == "demc" else f"demc-{config.variant}"
+
+
+def _check(config: Config) -> None:
+    if config.variant not in VARIANTS:
+        raise ValueError(f"demc: config.variant is {config.variant!r}; expected one of {VARIANTS}")
+    if len(config.widths) != 5 or any(int(w) < 1 for w in config.widths):
+        raise ValueError(f"demc: config.widths must be five positive channel counts (five down-sampling "
+                         f"units, Sec. 3.2), got {config.widths}")
+    if config.position_norm not in ("frame", "global"):
+        raise ValueError(f"demc: config.position_norm is {config.position_norm!r}; expected 'frame' or 'global'")
+    if not config.gamma > 0:
+        raise ValueError(f"demc: config.gamma must be > 0, got {config.gamma}")
+
+
+def needs(config: Config) -> frozenset[str]:
+    """Exactly the noisy colour and the four features of Sec. 3.1."""
+    return frozenset({"color", *FEATURES})
+
+
+# -- network -------------------------------------------------------------------------------------
+
+def _relu():
+    return nn.Relu()
+
+
+def _conv(c, k=3, gain=1.0, **kw):
+    return nn.Conv(c, k, w_init=nn.glorot_uniform_init(gain), **kw)
+
+
+def _fusion(config: Config):
+    f, g = config.fusion_width, config.xavier_gain
+    return nn.serial(_conv(f, gain=g), _relu(),
+                     _conv(f, gain=g, bias=False), nn.BatchNorm(config.bn_momentum), _relu(),
+                     _conv(f, gain=g, bias=False), nn.BatchNorm(config.bn_momentum), _relu(),
+                     _conv(3, gain=g), _relu())
+
+
+def _unit(c: int, n: int, gain: float):
+    layers = []
+    for _ in range(n):
+        layers += [_conv(c, gain=gain), _relu()]
+    return nn.serial(*layers)
+
+
+def widths_of(config: Config) -> tuple[int, ...]:
+    """The encoder widths actually built: ``config.widths``, or for SEMC the same widths scaled so
+    that the single-encoder network has DEMC's parameter count (Sec. 4.4, Fig. 4)."""
+    _check(config)
+    if config.variant != "semc":
+        return tuple(int(w) for w in config.widths)
+    return _semc_widths(config)
+
+
+@functools.lru_cache(maxsize=16)
+def _semc_widths(config: Config) -> tuple[int, ...]:
+    target = num_params(dataclasses.replace(config, variant="demc"))
+    best = None
+    for s in np.arange(1.0, 2.0, 0.005):
+        ws = tuple(max(1, int(round(w * s))) for w in config.widths)
+        n = _count(config, ws)
+        if best is None or abs(n - target) < abs(best[1] - target):
+            best = (ws, n)
+    return best[0]
+
+
+def _layers(config: Config, widths: tuple[int, ...]) -> dict:
+    L = len(widths)
+    dual = config.variant in ("demc", "nosn")
+    ways = 3 if dual else 2
+    g = config.xavier_gain
+    layers = {"enc_c": [_unit(w, config.convs_per_unit, g) for w in widths],
+              "latent": _unit(widths[-1], config.latent_convs, g),
+              "up": [nn.serial(nn.ConvTranspose(widths[i], 4, stride=2, w_init=nn.bilinear_init(2)), _relu())
+                     for i in range(L)],
+              "fuse": [nn.serial(nn.Conv(widths[i], 1, w_init=nn.identity_init((1.0,) + (0.0,) * (ways - 1))),
+                                 _relu()) for i in range(L)],
+              "out": _conv(3, gain=g)}
+    if dual:
+        layers["enc_f"] = [_unit(w, config.convs_per_unit, g) for w in widths]
+    if config.variant != "nosn":
+        layers["fusion"] = _fusion(config)
+    return layers
+
+
+def _init_net(key, config: Config, widths: tuple[int, ...]) -> dict:
+    layers = _layers(config, widths)
+    L = len(widths)
+    keys = iter(jax.random.split(key, 4 * L + 4))
+    params: dict = {}
+    cf = 12 if config.variant == "nosn" else 3
+    if "fusion" in layers:
+        params["fusion"] = layers["fusion"][0](next(keys), (-1, 32, 32, 12))[1]
+    cin_c = 6 if config.variant == "semc" else 3
+    enc_c, enc_f, c_prev_c, c_prev_f = {}, {}, cin_c, cf
+    for i, w in enumerate(widths):
+        enc_c[str(i)] = layers["enc_c"][i][0](next(keys), (-1, 32, 32, c_prev_c))[1]
+        c_prev_c = w
+        if "enc_f" in layers:
+            enc_f[str(i)] = layers["enc_f"][i][0](next(keys), (-1, 32, 32, c_prev_f))[1]
+            c_prev_f = w
+    params["enc_c"] = enc_c
+    if enc_f:
+        params["enc_f"] = enc_f
+    params["latent"] = layers["latent"][0](next(keys), (-1, 1, 1, widths[-1]))[1]
+    ways = 3 if "enc_f" in layers else 2
+    up, fuse = {}, {}
+    c = widths[-1]
+    for i in reversed(range(L)):
+        up[str(i)] = layers["up"][i][0](next(keys), (-1, 1, 1, c))[1]
+        fuse[str(i)] = layers["fuse"][i][0](next(keys), (-1, 2, 2, ways * widths[i]))[1]
+        c = widths[i]
+    params["up"], params["fuse"] = up, fuse
+    params["out"] = layers["out"][0](next(keys), (-1, 32, 32, widths[0]))[1]
+    return params
+
+
+def _count(config: Config, widths: tuple[int, ...]) -> int:
+    shapes = jax.eval_shape(lambda k: _init_net(k, config, widths), jax.random.PRNGKey(0))
+    return int(sum(np.prod(s.shape) for s in jax.tree_util.tree_leaves(shapes)))
+
+
+def num_params(config: Config) -> int:
+    """Trainable parameters plus BatchNorm running statistics, without ``norm`` (12 x 2 values)."""
+    return _count(config, widths_of(config))
+
+
+def init(key, config: Config) -> dict:
+    """Fresh params; ``norm`` holds identity statistics until `init_from_data` measures them."""
+    params = _init_net(key, config, widths_of(config))
+    params["norm"] = {"mean": jnp.zeros((12,), jnp.float32), "std": jnp.ones((12,), jnp.float32)}
+    return params
+
+
+def forward(params: dict, x_color: jax.Array, x_feat: jax.Array, config: Config, train: bool = False):
+    """The network on prepared inputs (`inputs`): ``(..., H, W, 3)`` compressed colour and
+    ``(..., H, W, 12)`` normalized features, H and W multiples of 32; returns the network's linear
+    output in the compressed domain (and, with ``train``, the BatchNorm updates)."""
+    widths = widths_of(config)
+    layers = _layers(config, widths)
+    L = len(widths)
+    updates: dict = {}
+    if "fusion" in layers:
+        detail = call(layers["fusion"][1], params["fusion"], x_feat, train, updates, "fusion")
+    else:
+        detail = x_feat
+    pool = nn.MaxPool(2)[1]
+    h_c = jnp.concatenate([x_color, detail], -1) if config.variant == "semc" else x_color
+    h_f = detail
+    skips_c, skips_f = [], []
+    for i in range(L):
+        h_c = layers["enc_c"][i][1](params["enc_c"][str(i)], h_c)
+        skips_c.append(h_c)
+        h_c = pool({}, h_c)
+        if "enc_f" in layers:
+            h_f = layers["enc_f"][i][1](params["enc_f"][str(i)], h_f)
+            skips_f.append(h_f)
+            h_f = pool({}, h_f)
+    g = layers["latent"][1](params["latent"], h_c)
+    for i in reversed(range(L)):
+        g = layers["up"][i][1](params["up"][str(i)], g)
+        parts = [g, skips_f[i], skips_c[i]] if skips_f else [g, skips_c[i]]
+        g = layers["fuse"][i][1](params["fuse"][str(i)], jnp.concatenate(parts, -1))
+    y = layers["out"][1](params["out"], g)
+    return (y, updates) if train else y
+
+
+def inputs(params: dict, buffers: Any, config: Config) -> tuple[jax.Array, jax.Array]:
+    """Eq. 4 on the colour and the z-score of the features (Sec. 4.2) for a `Buffers` or a batch dict
+    with the same field names; any leading axes."""
+    get = (lambda f: getattr(buffers, f)) if isinstance(buffers, Buffers) else (lambda f: buffers[f])
+    color = jnp.asarray(get("color"), jnp.float32)
+    color = jnp.where(jnp.isfinite(color), jnp.maximum(color, 0.0), 0.0)
+    x_color = jnp.power(color, 1.0 / config.gamma)
+    feats = jnp.concatenate([jnp.asarray(get(f), jnp.float32) for f in FEATURES], -1)
+    feats = jnp.where(jnp.isfinite(feats), feats, 0.0)
+    mean, std = params["norm"]["mean"], params["norm"]["std"]
+    x_feat = (feats - mean) / jnp.maximum(std, 1e-6)
+    if config.position_norm == "frame":
+        p = feats[..., 3:6]
+        mu = jnp.mean(p, axis=(-3, -2), keepdims=True)
+        sd = jnp.sqrt(jnp.mean(jnp.square(p - mu), axis=(-3, -2), keepdims=True) + 1e-8)
+        x_feat = x_feat.at[..., 3:6].set((p - mu) / jnp.maximum(sd, 1e-3))
+    return x_color, x_feat
+
+
+def _decompress(y: jax.Array, config: Config) -> jax.Array:
+    return jnp.power(jnp.maximum(y, 0.0), config.gamma)
+
+
+def _run(params, buffers, config, train=False):
+    x_color, x_feat = inputs(params, buffers, config)
+    x_color, size = nn.pad_to_multiple(x_color, 32)
+    x_feat, _ = nn.pad_to_multiple(x_feat, 32)
+    out = forward(params, x_color, x_feat, config, train=train)
+    if train:
+        y, updates = out
+        return _decompress(nn.crop_to(y, size), config), updates
+    return _decompress(nn.crop_to(out, size), config)
+
+
+def apply(params: dict, buffers: Buffers, config: Config) -> jax.Array:
+    """Denoise one frame or a batch (leading axes): HDR ``(..., H, W, 3)`` (inference mode: the
+    BatchNorm running statistics)."""
+    return _run(params, buffers, config)
+
+
+def loss(params: dict, batch: dict, config: Config):
+    """Eq. 5: RelMSE in HDR, ``mean((y - r)^2 / (r^2 + eps))`` over pixels and channels, with the
+    fusion sub-network's BatchNorm in training mode (its new running statistics as aux updates)."""
+    out, updates = _run(params, batch, config, train=True)
+    ref = batch["reference"]
+    value = jnp.mean(jnp.square(out - ref) / (jnp.square(ref) + config.eps))
+    return value, {"updates": updates}
+
+
+# -- training data ---------------------------------------------------------------------------------
+
+def make_dataset(data_dir, config: Config, *, progress: bool = True):
+    """The training renders at ``train_spps`` with their references: a data_gen folder (decoded
+    once into the pipeline cache) or an export ``.npz`` (`jaxdenoise.pipeline.open_training_data`)."""
+    from ..pipeline import open_training_data
+
+    _check(config)
+    return open_training_data(data_dir, FEATURES, spps=config.train_spps, progress=progress)
+
+
+def batch(dataset, step: int, config: Config, rng: np.random.Generator) -> dict:
+    """``train_batch`` random ``train_crop`` crops at ``train_spps``, augmented as the pipeline does
+    (quarter turns, mirror, colour modulation; world-space features unchanged)."""
+    b = dataset.crops(config.train_batch, config.train_crop, rng, spps=config.train_spps)
+    return {k: b[k] for k in ("color", *FEATURES, "reference")}
+
+
+def init_from_data(key, config: Config, dataset) -> dict:
+    """`init` with the features' training-set mean and standard deviation (Sec. 4.2: z-score),
+    measured on 64 unaugmented crops drawn with a fixed seed."""
+    params = init(key, config)
+    b = dataset.crops(64, max(config.train_crop, 64), np.random.default_rng(12345), spps=config.train_spps,
+                      augment=False)
+    feats = np.concatenate([np.asarray(b[f], np.float64) for f in FEATURES], -1).reshape(-1, 12)
+    params["norm"] = {"mean": jnp.asarray(feats.mean(0), jnp.float32),
+                      "std": jnp.asarray(np.maximum(feats.std(0), 1e-6), jnp.float32)}
+    return params
