@@ -85,7 +85,7 @@ def run(args) -> None:
     dataset = None
     base = demc.Config(train_batch=args.batch, train_crop=args.crop)
 
-    def one(name, cfg, seed, steps, time_limit, lr_every):
+    def one(name, cfg, seed, steps, time_limit, lr_every, init_from=None):
         nonlocal dataset
         if dataset is None:
             dataset = demc.make_dataset(args.train, cfg, progress=False)
@@ -94,7 +94,7 @@ def run(args) -> None:
                         config=cfg, dataset=dataset, val_data=args.val, learning_rate=args.lr,
                         schedule="exponential", schedule_every=max(1, lr_every), schedule_factor=0.5,
                         validate_every=args.validate_every, checkpoint_every=args.validate_every,
-                        time_limit=time_limit)
+                        time_limit=time_limit, init_from=init_from)
         rec = {"variant": cfg.variant, "seed": seed, "steps": s["steps_done"], "seconds": time.perf_counter() - t,
                "final_loss": s["final_loss"], "best": s.get("best"), "params": demc.num_params(cfg),
                "crops_seen": s["steps_done"] * cfg.train_batch, "crop": cfg.train_crop,
@@ -123,8 +123,9 @@ def run(args) -> None:
         rate = summary["runs"].get("abl_demc_s1", {})
         steps = int(rate["steps"] / max(rate["seconds"], 1e-9) * args.main_seconds) if rate else args.main_steps
         summary["main_planned_steps"] = steps
-        one("main", base, 0, steps, 1.15 * args.main_seconds, max(1, steps // 3))
-        _tar(out, "main.tar", {"best": work / "main" / "best", "weights": work / "main" / "weights"})
+        one(args.main_name, base, 0, steps, 1.15 * args.main_seconds, max(1, steps // 3), args.init_from)
+        _tar(out, f"{args.main_name}.tar", {"best": work / args.main_name / "best",
+                                            "weights": work / args.main_name / "weights"})
     summary["finished"] = time.time()
     save_summary()
 
@@ -148,6 +149,8 @@ def main() -> None:
     r.add_argument("--ablation-seconds", type=float, default=35.0)
     r.add_argument("--main-seconds", type=float, default=200.0)
     r.add_argument("--main-steps", type=int, default=2000, help="when no ablation ran to measure the rate")
+    r.add_argument("--main-name", default="main")
+    r.add_argument("--init-from", default=None, help="weights folder to start the main run from (fine-tuning)")
     args = ap.parse_args()
     prepare(args) if args.cmd == "prepare" else run(args)
 

@@ -118,7 +118,8 @@ def test_conv_leading_axes_and_no_bias():
 
 # -- ConvTranspose ------------------------------------------------------------------------------
 @pytest.mark.parametrize("h,w,k,s,p", [(3, 4, 4, 2, None), (5, 5, 2, 2, None), (1, 1, 4, 2, None),
-                                       (3, 2, 3, 2, 0), (4, 3, 3, 1, 1)])
+                                       (3, 2, 3, 2, 0), (4, 3, 3, 1, 1), (5, 4, 5, 3, 1), (2, 3, 4, 2, 3),
+                                       (4, 4, 2, 3, 0)])
 def test_conv_transpose_matches_numpy_scatter(h, w, k, s, p):
     init, apply = nn.ConvTranspose(3, k, stride=s, padding=p, b_init=nn.uniform_init(0.5))
     out_shape, params = init(jax.random.PRNGKey(2), (-1, h, w, 2))
@@ -315,7 +316,16 @@ def test_recurrent_block_carries_its_state():
     w = params["h1"]["w"].at[:, :, 4:, :].set(0.0)
     p = {**params, "h1": {**params["h1"], "w": w}}
     np.testing.assert_allclose(np.asarray(apply(p, x, h0)), np.asarray(apply(p, x, h1)), atol=1e-6)
-    check_grads(lambda q, h: apply(q, x, h), (params, h1), order=1, modes=("rev",), atol=1e-2, rtol=1e-2)
+    # Difference quotients near a leaky-ReLU kink miss by percents; which input lands near one
+    # depended on the test order (the module's generator), so the check uses its own input and
+    # direction, in float64.
+    x = jnp.asarray(np.random.default_rng(7).normal(size=(6, 5, 3)).astype(np.float32))
+    h1 = apply(params, x, h0)
+    np.random.seed(0)  # check_grads draws its directions from NumPy's global generator
+    with jax.enable_x64():
+        f64 = lambda t: jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float64), t)
+        check_grads(lambda q, h: apply(q, f64(x), h), (f64(params), f64(h1)), order=1, modes=("rev",),
+                    atol=1e-5, rtol=1e-5)
     with pytest.raises(ValueError, match="hidden state has shape"):
         apply(params, x, jnp.zeros((6, 5, 3)))
 

@@ -68,8 +68,8 @@ class Config:
     xavier_gain: float = 1.0  # Xavier (Sec. 4.2) = 1; 2 is the ReLU-compensated variant (measured, demc.md)
     # Training data (Sec. 4.1: 4-spp inputs); crop and batch are ours, sized to the machine.
     train_spps: tuple[int, ...] = (4,)
-    train_crop: int = 64
-    train_batch: int = 16
+    train_crop: int = 96
+    train_batch: int = 32
 
 
 # Adam (Sec. 4.2; the learning-rate range is not legible: 1e-4 with a slow exponential decay, ours).
@@ -255,7 +255,8 @@ def inputs(params: dict, buffers: Any, config: Config) -> tuple[jax.Array, jax.A
     x_color = jnp.power(color, 1.0 / config.gamma)
     feats = jnp.concatenate([jnp.asarray(get(f), jnp.float32) for f in FEATURES], -1)
     feats = jnp.where(jnp.isfinite(feats), feats, 0.0)
-    mean, std = params["norm"]["mean"], params["norm"]["std"]
+    sg = jax.lax.stop_gradient  # statistics, never trained (FROZEN)
+    mean, std = sg(params["norm"]["mean"]), sg(params["norm"]["std"])
     x_feat = (feats - mean) / jnp.maximum(std, 1e-6)
     if config.position_norm == "frame":
         p = feats[..., 3:6]

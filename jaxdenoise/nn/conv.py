@@ -6,7 +6,8 @@
   ``padding`` convention: ``out = (in - 1) * stride - 2 * padding + kernel``; the default padding
   ``(kernel - stride) // 2`` makes it an exact ``stride``-fold up-sampler in size (GradNet's 4x4
   stride-2 deconvolution, Guo 2019 Sec. 4.4: ``H -> 2H``). In scatter form:
-  ``y[stride * p + i - padding, :] += x[p, c] w[i, j, c, :]``.
+  ``y[stride * p + i - padding, :] += x[p, c] w[i, j, c, :]``. Computed by output phase (one
+  small correlation per phase, interleaved), not by dilating the input with zeros.
 - Initializers for HWIO kernels: `he_normal_init` (Kaiming: N(0, 2 / fan_in), Chaitanya 2017 and
   Guo 2019), `glorot_uniform_init` (Xavier, in `jaxdenoise.nn`, receptive-field aware),
   `bilinear_init` (a ConvTranspose that is exact bilinear up-sampling with half-pixel centres:
@@ -172,8 +173,7 @@ def Conv(out_channels: int, kernel: int | tuple[int, int] = 3, *, stride: int | 
         if x.shape[-1] != w.shape[2]:
             raise ValueError(f"Conv: input has {x.shape[-1]} channels, the layer expects {w.shape[2]}")
         xf, lead = _flatten(x, "Conv")
-        y = jax.lax.conv_general_dilated(xf, w.astype(x.dtype), (sh, sw), pad, rhs_dilation=(dh, dw),
-                                         dimension_numbers=_DN)
+        y = _correlate(xf, w.astype(x.dtype), (sh, sw), pad, (dh, dw))
         if "b" in params:
             y = y + params["b"].astype(y.dtype)
         return y.reshape(lead + tuple(y.shape[1:]))
@@ -210,16 +210,85 @@ def ConvTranspose(out_channels: int, kernel: int | tuple[int, int] = 4, *, strid
         if x.shape[-1] != w.shape[2]:
             raise ValueError(f"ConvTranspose: input has {x.shape[-1]} channels, the layer expects {w.shape[2]}")
         xf, lead = _flatten(x, "ConvTranspose")
-        # The adjoint of a strided correlation: dilate the input by the stride, pad k - 1 - p on each
-        # side and correlate with the spatially flipped kernel (scatter form in the module docstring).
-        y = jax.lax.conv_general_dilated(xf, jnp.flip(w, (0, 1)).astype(x.dtype), (1, 1),
-                                         ((kh - 1 - ph, kh - 1 - ph), (kw - 1 - pw, kw - 1 - pw)),
-                                         lhs_dilation=(sh, sw), dimension_numbers=_DN)
+        y = _transpose_by_phases(xf, w.astype(x.dtype), (sh, sw), (ph, pw))
         if "b" in params:
             y = y + params["b"].astype(y.dtype)
         return y.reshape(lead + tuple(y.shape[1:]))
 
     return init, apply
+
+
+# Input channels are zero-padded to a multiple of this before a spatial convolution: exact, and
+# measured 1.4-3.5x faster on this CPU (jax 0.10, 1280x736: 3x3 conv 3->24 in 248 ms, 8->24 in
+# 71 ms; 12->24 in 93 ms, 16->24 in 66 ms; docs/results/demc.md).
+CHANNEL_MULTIPLE = 8
+
+
+def _correlate(x: jax.Array, w: jax.Array, stride: tuple[int, int], pad: Any, dilation: tuple[int, int]) -> jax.Array:
+    """``lax.conv_general_dilated`` in NHWC/HWIO with two exact rewrites that XLA's CPU back end
+    does not make itself: a 1x1, stride-1 convolution is a matrix product over channels (4x faster
+    at 1280x736, 72 -> 24 channels: 54 vs 203 ms), and input channels are padded with zeros to a
+    multiple of `CHANNEL_MULTIPLE`."""
+    kh, kw, cin, _ = w.shape
+    if (kh, kw) == (1, 1) and stride == (1, 1) and (isinstance(pad, str) or pad == ((0, 0), (0, 0))):
+        return jnp.dot(x, w[0, 0])
+    extra = (-cin) % CHANNEL_MULTIPLE
+    if extra:
+        x = jnp.pad(x, ((0, 0), (0, 0), (0, 0), (0, extra)))
+        w = jnp.pad(w, ((0, 0), (0, 0), (0, extra), (0, 0)))
+    return jax.lax.conv_general_dilated(x, w, stride, pad, rhs_dilation=dilation, dimension_numbers=_DN)
+
+
+def _phase_taps(n_in: int, k: int, s: int, p: int, r: int) -> tuple[int, list[tuple[int, int]], int, int]:
+    """Output phase ``r`` (outputs ``o = s m + r``) of a 1-D transposed convolution as a correlation:
+    ``y_r[m] = sum_t x[m + d_t] w[t]`` over the taps ``t = r + p (mod s)``, ``d_t = (r + p - t) / s``.
+    Returns ``(M_r, [(d_t, t)], pad_lo, pad_hi)`` (negative pads are crops)."""
+    n_out = (n_in - 1) * s - 2 * p + k
+    m_r = max(0, -(-(n_out - r) // s))
+    taps = [((r + p - t) // s, t) for t in range(k) if (t - r - p) % s == 0]
+    if not taps:
+        return m_r, [], 0, 0
+    d_min, d_max = min(d for d, _ in taps), max(d for d, _ in taps)
+    lo = -d_min
+    hi = m_r - n_in + (d_max - d_min) - lo
+    return m_r, taps, lo, hi
+
+
+def _transpose_by_phases(x: jax.Array, w: jax.Array, stride: tuple[int, int], pad: tuple[int, int]) -> jax.Array:
+    """The transposed convolution (scatter form in the module docstring) as ``s_h * s_w`` small
+    stride-1 correlations, one per output phase, interleaved (the sub-pixel form). Exact, and
+    ``s_h s_w`` times fewer multiply-adds than correlating an input dilated by the stride with zeros,
+    which is what XLA's ``lhs_dilation`` costs on a CPU (a 4x4 stride-2 layer: 4 taps per output
+    pixel instead of 16)."""
+    (sh, sw), (ph, pw) = stride, pad
+    n, h, wd, _ = x.shape
+    kh, kw, _, cout = w.shape
+    rows = []
+    for ry in range(sh):
+        my, ty, loy, hiy = _phase_taps(h, kh, sh, ph, ry)
+        cols = []
+        for rx in range(sw):
+            mx, tx, lox, hix = _phase_taps(wd, kw, sw, pw, rx)
+            if not ty or not tx:
+                cols.append(jnp.zeros((n, my, mx, cout), x.dtype))
+                continue
+            dy0, dx0 = min(d for d, _ in ty), min(d for d, _ in tx)
+            sub = jnp.zeros((max(d for d, _ in ty) - dy0 + 1, max(d for d, _ in tx) - dx0 + 1) + w.shape[2:], w.dtype)
+            for dy, t_y in ty:
+                for dx, t_x in tx:
+                    sub = sub.at[dy - dy0, dx - dx0].set(w[t_y, t_x])
+            xp = jax.lax.pad(x, jnp.zeros((), x.dtype), ((0, 0, 0), (loy, hiy, 0), (lox, hix, 0), (0, 0, 0)))
+            cols.append(_correlate(xp, sub, (1, 1), "VALID", (1, 1)))
+        rows.append(cols)
+    n_out_h = (h - 1) * sh - 2 * ph + kh
+    n_out_w = (wd - 1) * sw - 2 * pw + kw
+    my_max = max(r[0].shape[1] for r in rows)
+    mx_max = max(c.shape[2] for c in rows[0])
+    grid = [[jnp.pad(c, ((0, 0), (0, my_max - c.shape[1]), (0, mx_max - c.shape[2]), (0, 0))) for c in r] for r in rows]
+    # (n, my, sh, mx, sw, c) -> (n, my * sh, mx * sw, c): output row s*m + r takes phase r's row m
+    y = jnp.stack([jnp.stack(r, axis=3) for r in grid], axis=2)
+    y = y.reshape(n, my_max * sh, mx_max * sw, cout)
+    return y[:, :n_out_h, :n_out_w]
 
 
 def pad_to_multiple(x: jax.Array, multiple: int, *, mode: str = "edge") -> tuple[jax.Array, tuple[int, int]]:
