@@ -54,6 +54,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="render on Dask: 'local', 'local:N' (a local cluster of N workers) or a scheduler "
                         "address such as tcp://host:8786 (needs the cluster extra)")
     d.add_argument("--note", default=None, help="free text stored in the manifest")
+    d.add_argument("--frames", type=int, default=0,
+                   help="render each scene as a camera fly-through of N frames (frame_XXXX/ folders)")
     common(d)
     a = p.parse_args(argv)
 
@@ -96,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
     m = generate_dataset(a.family, a.count, a.out, width=a.res, spp=a.spp, instances=a.instances,
                          ref_spp=a.ref_spp, seed=a.seed, start=a.start, workers=a.workers, max_depth=a.max_depth,
                          methods=_names(a.methods), buffers=_names(a.buffers), progress=not a.no_progress,
-                         command=command, note=a.note, scheduler=a.scheduler)
+                         command=command, note=a.note, scheduler=a.scheduler, frames=a.frames)
     size = dataset_size_bytes(a.out) / 2**20
     last = m["runs"][-1]
     where = (f", Dask {a.scheduler}: {last.get('workers', '?')} worker(s), {last.get('retries', 0)} retried shot(s)"

@@ -26,6 +26,17 @@ def _render_one(job: dict) -> tuple[str, dict]:
 
     scene = build_scene(job["family"], job["scene_seed"], width=job["width"], height=job["height"])
     scene["__name__"] = f"{job['family']}:{job['scene_seed']}"
+    if job.get("frames"):  # a camera fly-through: DIR/scene_XXXX/frame_XXXX/ (Chaitanya 2017 Sec. 4.3)
+        from .sequences import render_sequence
+
+        seq = render_sequence(scene, job["dir"], n_frames=job["frames"], instances=job["instances"], spp=job["spp"],
+                              ref_spp=job["ref_spp"], seed=job["scene_seed"], buffers=job["buffers"],
+                              methods=job["methods"], max_depth=job["max_depth"], progress=job["progress"],
+                              samples_per_pass=job["samples_per_pass"])
+        rec = {"frames": len(seq["frames"]), "scene": scene["__name__"],
+               "render_seconds": float(sum(f.get("render_seconds", 0.0) for f in seq["frames"])),
+               "family": scene.get("__family__", job["family"]), "requested_family": job["family"]}
+        return job["name"], rec
     rec = render_shot(scene, job["dir"], spp=job["spp"], ref_spp=job["ref_spp"], instances=job["instances"],
                       methods=job["methods"], buffers=job["buffers"], max_depth=job["max_depth"],
                       seed=job["scene_seed"], progress=job["progress"], samples_per_pass=job["samples_per_pass"],
@@ -40,12 +51,16 @@ def generate_dataset(family: str, count: int, out: str | os.PathLike, *, width: 
                      ref_spp: int = 1024, seed: int = 0, start: int = 0, workers: int = 1, max_depth: int = 8,
                      methods: Iterable[str] | None = None, buffers: Iterable[str] | None = None,
                      progress: bool = True, samples_per_pass: int = 1 << 20, command: str | None = None,
-                     note: str | None = None, scheduler: str | None = None, _stop_after: int | None = None,
+                     note: str | None = None, scheduler: str | None = None, frames: int = 0,
+                     _stop_after: int | None = None,
                      _die_once: str | None = None) -> dict:
     """Render ``count`` procedural scenes of ``family`` (scene k uses seed ``seed + start + k`` and
     folder ``scene_{start + k:04d}``) into ``out``; returns the manifest. ``scheduler`` (``local``,
     ``local:N`` or a Dask scheduler address) renders one Dask task per scene instead of local
-    ``workers`` (`data_gen.cluster`); the output is the same files."""
+    ``workers`` (`data_gen.cluster`); the output is the same files. ``frames > 0`` renders each
+    scene as a camera fly-through of that many frames (`data_gen.sequences.render_sequence`:
+    ``scene_XXXX/frame_XXXX/``, every frame with ``instances`` noisy renders per spp and its own
+    reference)."""
     import json
 
     from jaxdenoise.fsutil import remove_stale_temporaries, write_json
@@ -72,7 +87,7 @@ def generate_dataset(family: str, count: int, out: str | os.PathLike, *, width: 
            "spp": list(spp), "instances": instances, "ref_spp": ref_spp, "max_depth": max_depth,
            "methods": list(methods) if methods is not None else None,
            "buffers": list(buffers) if buffers is not None else None, "command": command, "note": note,
-           "scheduler": scheduler}
+           "scheduler": scheduler, "frames": int(frames)}
     run_id = f"{os.getpid()}-{time.time_ns()}"
     jobs = []
     for k in range(count):
@@ -84,6 +99,7 @@ def generate_dataset(family: str, count: int, out: str | os.PathLike, *, width: 
                      "buffers": list(buffers) if buffers is not None else None, "max_depth": max_depth,
                      "progress": progress and workers == 1 and scheduler is None,
                      "samples_per_pass": samples_per_pass, "_stop_after": _stop_after, "run_id": run_id,
+                     "frames": int(frames),
                      "_die_once": _die_once})
     run["status"] = "running"
     manifest["runs"].append(run)  # recorded before rendering, so an interrupted run is listed too

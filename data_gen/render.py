@@ -23,6 +23,37 @@ def film_size(scene) -> tuple[int, int]:
     return int(size[0]), int(size[1])
 
 
+def camera_matrices(scene) -> dict:
+    """The first sensor's ``world_to_camera`` and ``world_to_ndc`` as `jaxdenoise.view` defines them
+    (column-vector 4x4 matrices; camera +x right, +y up, +z along the view: OpenEXR's
+    ``worldToCamera``; NDC x, y in [-1, 1] left to right and bottom to top, over the film crop).
+
+    Mitsuba's camera frame has +x to the image's left (``look_at``'s ``left`` axis), so the x axis is
+    negated. ``world_to_ndc`` needs a perspective or thin-lens sensor (``x_fov``); for other sensors
+    it is None. A crop window, or a principal point offset, is not supported here (None)."""
+    import mitsuba as mi
+
+    sensor = scene.sensors()[0]
+    to_world = np.asarray(sensor.world_transform().matrix, np.float64).reshape(4, 4)
+    w2c = np.diag([-1.0, 1.0, 1.0, 1.0]) @ np.linalg.inv(to_world)
+    out = {"world_to_camera": w2c.astype(np.float32), "world_to_ndc": None}
+    params = mi.traverse(sensor)
+    if "x_fov" not in params:
+        return out
+    film = sensor.film()
+    (fw, fh), (cw, ch) = film.size(), film.crop_size()
+    scalar = lambda v: float(np.asarray(v, np.float64).reshape(-1)[0])  # Dr.Jit arrays in vectorized variants
+    off = [scalar(params[k]) for k in ("principal_point_offset_x", "principal_point_offset_y") if k in params]
+    if (int(fw), int(fh)) != (int(cw), int(ch)) or any(off):
+        return out
+    tx = np.tan(np.radians(scalar(params["x_fov"])) / 2)
+    ty = tx * float(fh) / float(fw)
+    near = scalar(params["near_clip"]) if "near_clip" in params else 0.0
+    proj = np.array([[1 / tx, 0, 0, 0], [0, 1 / ty, 0, 0], [0, 0, 1, -near], [0, 0, 1, 0]], np.float64)
+    out["world_to_ndc"] = (proj @ w2c).astype(np.float32)
+    return out
+
+
 def _channels(name: str) -> int:
     return 3 if name == "color" else FEATURE_DIMS[name]
 

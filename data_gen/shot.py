@@ -19,7 +19,7 @@ import numpy as np
 
 from .integrator import FEATURES, PathSettings, derive_seed
 from .mitsuba_setup import RenderTimer
-from .render import DEFAULT_SAMPLES_PER_PASS, film_size, render_buffers, render_reference
+from .render import DEFAULT_SAMPLES_PER_PASS, camera_matrices, film_size, render_buffers, render_reference
 from .scenes import describe, load_scene
 
 GRADIENT_FIELDS = ("dx", "dy")
@@ -178,6 +178,7 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
     loaded = load_scene(scene, width=width, height=height)
     desc = describe(loaded)
     w, h = film_size(loaded)
+    camera = {k: v for k, v in camera_matrices(loaded).items() if v is not None}  # each frame's header
     requested = requested_fields(methods, buffers)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -223,7 +224,7 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
                 seconds, compile_seconds = timer.seconds, timer.compile_seconds
                 attrs = _attrs(base_key, s, None, seconds)
                 attrs["ref_relmse_halves"] = noise
-                write_buffers(out_dir / name, Buffers(color=ref, spp=s), attrs)
+                write_buffers(out_dir / name, Buffers(color=ref, spp=s, **camera), attrs)
                 dsha = data_sha256({"color": ref})
                 rec["reference"] = {"file": name, "spp": s, "seconds": seconds,
                                     "compile_seconds": compile_seconds, "relmse_halves": noise,
@@ -244,7 +245,7 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
                     grad_seconds = timer.seconds
                     seconds += grad_seconds
                     compile_seconds += timer.compile_seconds
-                bufs = Buffers(**{f: data[f] for f in fields if f in data}, spp=s)
+                bufs = Buffers(**{f: data[f] for f in fields if f in data}, spp=s, **camera)
                 attrs = _attrs(base_key, s, inst, seconds)
                 write_buffers(out_dir / name, bufs, attrs)
                 dsha = data_sha256({f: data[f] for f in fields if f in data})

@@ -8,7 +8,8 @@ pipeline, validated on frames it never trained on against the Gaussian filter's 
 - network: U-Net with stages of 16 / 32 / 64 channels (two 3x3 convs + leaky ReLU 0.1 each), 2x2
   max pooling, nearest up-sampling, skip concatenation, linear 3-channel output (78k parameters);
 - input: ``log1p`` of the 4-spp colour, albedo and shading normal (9 channels); output
-  ``expm1(max(y, 0))``; loss: RelMSE ``(y - r)^2 / (r^2 + 0.01)`` (the metric);
+  ``expm1(y)`` (a first run clamped ``y`` at 0 and its output died: every pixel 0 after the first
+  steps, no gradient left); loss: RelMSE ``(y - r)^2 / (r^2 + 0.01)`` (the metric);
 - data: 8 augmented 64x64 crops per step from the training export (`pipeline.open_training_data`),
   drawn by (seed, step); Adam 1e-3, constant;
 - validation: every ``--validate-seconds``, the whole 128x128 frames of ``--val`` (EXR folder or
@@ -78,7 +79,7 @@ def main() -> None:
 
     def predict(p, b):
         x, size = nn.pad_to_multiple(features(b), 2 ** len(WIDTHS))
-        return jnp.expm1(jnp.maximum(nn.crop_to(apply(p, x), size), 0.0))
+        return jnp.expm1(nn.crop_to(apply(p, x), size))
 
     @jax.jit
     def step(p, s, b):

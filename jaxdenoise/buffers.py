@@ -40,7 +40,9 @@ IMAGE_FIELDS: tuple[str, ...] = tuple(CHANNELS)
 FEATURES: tuple[str, ...] = ("albedo", "albedo2", "normal", "position", "depth", "visibility", "roughness")
 # Per-frame metadata: travels with the frame through every path (`Buffers.only`, `stack`, batches,
 # sequences) whatever a method reads, so no selection of buffers can drop it (DESIGN.md "Methods").
-METADATA_FIELDS: tuple[str, ...] = ("spp",)
+METADATA_FIELDS: tuple[str, ...] = ("spp", "world_to_camera", "world_to_ndc")
+# Metadata that is a 4x4 matrix per frame (`jaxdenoise.view` documents the conventions).
+MATRIX_FIELDS: tuple[str, ...] = ("world_to_camera", "world_to_ndc")
 ALL_FIELDS: tuple[str, ...] = IMAGE_FIELDS + METADATA_FIELDS
 
 
@@ -57,8 +59,11 @@ class Buffers:
     hit texture value), ``normal`` (world-space shading normal in [-1, 1]), ``position`` (world),
     ``depth`` (camera distance), ``visibility`` (direct-light visibility fraction), ``roughness``,
     ``dx`` / ``dy`` (``I[y, x+1] - I[y, x]`` and ``I[y+1, x] - I[y, x]``), ``<feature>_var`` (one
-    channel, variance of the feature's pixel mean) and ``spp`` (samples per pixel, scalar or one per
-    frame).
+    channel, variance of the feature's pixel mean) and the frame's metadata: ``spp`` (samples per
+    pixel, scalar or one per frame), ``world_to_camera`` and ``world_to_ndc`` (the camera, 4x4
+    matrices acting on column vectors, ``(4, 4)`` or one per frame; OpenEXR's ``worldToCamera`` /
+    ``worldToNDC`` header attributes; conventions and the view-space quantities derived from them in
+    `jaxdenoise.view`).
     """
 
     color: Any
@@ -80,6 +85,8 @@ class Buffers:
     dx: Any = None
     dy: Any = None
     spp: Any = None
+    world_to_camera: Any = None
+    world_to_ndc: Any = None
 
     def __post_init__(self) -> None:
         # Only check concrete shapes; JAX's tree utilities may rebuild the class with placeholders.
@@ -124,6 +131,13 @@ class Buffers:
             lead = grid[:-2]
             if tuple(self.spp.shape) not in ((), tuple(lead)):
                 raise BuffersError(f"{where}: 'spp' has shape {tuple(self.spp.shape)}; expected () or {lead}")
+        for name in MATRIX_FIELDS:
+            m = getattr(self, name)
+            if m is None or not hasattr(m, "shape") or grid is None:
+                continue
+            lead = tuple(grid[:-2])
+            if tuple(m.shape) not in ((4, 4), lead + (4, 4)):
+                raise BuffersError(f"{where}: '{name}' has shape {tuple(m.shape)}; expected (4, 4) or {lead + (4, 4)}")
         return self
 
     def check_needs(self, needs: Iterable[str], method: str, *, where: str | None = None) -> None:
@@ -135,9 +149,12 @@ class Buffers:
         prefix = f"{where}: " if where else ""
         meta = [f for f in missing if f in METADATA_FIELDS]
         if meta:
+            how = "the integer 'spp' header attribute of an EXR, or Buffers(spp=...)" if meta == ["spp"] else \
+                ("the EXR header attributes 'spp', 'worldToCamera' and 'worldToNDC' (data_gen writes them), "
+                 "or Buffers(spp=..., world_to_camera=..., world_to_ndc=...)")
             raise BuffersError(
-                f"{prefix}method '{method}' needs the frame's {meta} (e.g. the integer 'spp' header attribute "
-                f"of an EXR, or Buffers(spp=...)), which this input lacks; it is never guessed")
+                f"{prefix}method '{method}' needs the frame's {meta} (e.g. {how}), which this input lacks; "
+                "it is never guessed")
         raise BuffersError(
             f"{prefix}method '{method}' needs buffer(s) {missing}, which this input lacks "
             f"(present: {sorted(self.present())}); render them (data_gen) or pick another method")
@@ -206,7 +223,7 @@ def map_frames(fn: Any, buffers: Buffers) -> Any:
     """``fn(frame) -> (H, W, C)`` over every frame of ``buffers``: a single ``(H, W, C)`` frame goes
     straight to ``fn``; leading axes are a batch of independent frames (DESIGN.md "Methods"), run one
     frame at a time with ``jax.lax.map`` (the memory of one frame's intermediates, one compiled
-    body). A scalar ``spp`` applies to every frame of the batch."""
+    body). A scalar ``spp`` (or a single camera matrix) applies to every frame of the batch."""
     lead = tuple(np.shape(buffers.color)[:-3])
     if not lead:
         return fn(buffers)
@@ -216,6 +233,7 @@ def map_frames(fn: Any, buffers: Buffers) -> Any:
     for k in METADATA_FIELDS:
         v = getattr(buffers, k)
         if v is not None:
-            flat[k] = jax.numpy.reshape(jax.numpy.broadcast_to(jax.numpy.asarray(v), lead), (n,))
+            tail = (4, 4) if k in MATRIX_FIELDS else ()
+            flat[k] = jax.numpy.reshape(jax.numpy.broadcast_to(jax.numpy.asarray(v), lead + tail), (n,) + tail)
     out = jax.lax.map(lambda d: fn(Buffers(**d)), flat)
     return out.reshape(lead + tuple(out.shape[1:]))

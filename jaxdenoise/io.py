@@ -193,6 +193,10 @@ def read_buffers(path: str | os.PathLike, *, repair: str | None = None,
         if not isinstance(spp, (int, np.integer)) or spp < 1:
             raise ExrError(f"{path}: header attribute 'spp' is {spp!r}; expected a positive integer")
         fields["spp"] = np.float32(spp)
+    for field in EXR_MATRICES:
+        m = _read_matrix(path, attrs, field)
+        if m is not None:
+            fields[field] = m
     ignored = sorted(set(chans) - known)
     if ignored:
         attrs["ignored_channels"] = ignored
@@ -234,8 +238,28 @@ def read_sequence(pattern: str, *, repair: str | None = None) -> tuple[list[Buff
     return frames, paths
 
 
+# Frame metadata stored as OpenEXR's standard matrix attributes. OpenEXR multiplies row vectors
+# (``p' = p M``); `Buffers` holds the column-vector matrix, the transpose (`jaxdenoise.view`).
+EXR_MATRICES: dict[str, str] = {"world_to_camera": "worldToCamera", "world_to_ndc": "worldToNDC"}
+
+
+def _read_matrix(path: Path, attrs: dict, field: str) -> np.ndarray | None:
+    name = EXR_MATRICES[field]
+    if name not in attrs:
+        return None
+    try:
+        m = np.asarray(attrs[name], np.float64).reshape(4, 4).T
+    except (TypeError, ValueError):
+        raise ExrError(f"{path}: header attribute '{name}' is {attrs[name]!r}; expected a 4x4 matrix") from None
+    if not np.all(np.isfinite(m)):
+        raise ExrError(f"{path}: header attribute '{name}' has non-finite entries")
+    return m.astype(np.float32)
+
+
 def _header_value(spec, name: str, value: Any, path: Path) -> None:
-    if isinstance(value, (bool, np.bool_)):
+    if isinstance(value, np.ndarray) and value.shape == (4, 4):
+        spec.attribute(name, oiio.TypeDesc("matrix"), tuple(float(v) for v in value.T.reshape(-1)))
+    elif isinstance(value, (bool, np.bool_)):
         spec.attribute(name, int(value))
     elif isinstance(value, (int, np.integer)):
         spec.attribute(name, int(value))
@@ -245,7 +269,7 @@ def _header_value(spec, name: str, value: Any, path: Path) -> None:
         spec.attribute(name, value)
     else:
         raise ExrError(f"{path}: header attribute '{name}' has type {type(value).__name__}; "
-                       f"expected int, float or str")
+                       f"expected int, float, str or a 4x4 matrix")
 
 
 def _write(path: Path, names: list[str], data: np.ndarray, attrs: Mapping[str, Any] | None) -> Path:
@@ -271,8 +295,9 @@ def _write(path: Path, names: list[str], data: np.ndarray, attrs: Mapping[str, A
 def write_buffers(path: str | os.PathLike, buffers: Buffers, attrs: Mapping[str, Any] | None = None) -> Path:
     """Write every present buffer of one frame as a multi-channel EXR (atomically).
 
-    ``buffers.spp`` becomes the integer header attribute ``spp``; ``attrs`` (int/float/str) are
-    written as further header attributes (the renderer's settings).
+    ``buffers.spp`` becomes the integer header attribute ``spp`` and the camera matrices OpenEXR's
+    ``worldToCamera`` / ``worldToNDC``; ``attrs`` (int/float/str) are written as further header
+    attributes (the renderer's settings).
     """
     path = Path(path)
     buffers = buffers.to_numpy()
@@ -293,6 +318,13 @@ def write_buffers(path: str | os.PathLike, buffers: Buffers, attrs: Mapping[str,
         if spp != int(spp) or spp < 1:
             raise ExrError(f"{path}: spp={spp} is not a positive integer")
         header["spp"] = int(spp)
+    for field, name in EXR_MATRICES.items():
+        m = getattr(buffers, field)
+        if m is not None:
+            m = np.asarray(m, np.float64)
+            if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+                raise ExrError(f"{path}: '{field}' must be one finite 4x4 matrix, got shape {m.shape}")
+            header[name] = m
     return _write(path, names, np.concatenate(planes, axis=-1), header)
 
 

@@ -46,7 +46,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .buffers import CHANNELS, IMAGE_FIELDS
+from .buffers import CHANNELS, IMAGE_FIELDS, MATRIX_FIELDS
 from .fsutil import atomic_path, write_json
 
 __all__ = ["build_cache", "Cache", "ExportedCache", "load_export", "open_training_data", "default_cache_dir", "augment", "rotate90", "flip_lr",
@@ -58,7 +58,12 @@ RADIANCE = ("color", "dx", "dy", "reference")
 BOUNDED = {"normal": (-1.0, 1.0), "albedo": (0.0, 1.0), "albedo2": (0.0, 1.0), "visibility": (0.0, 1.0),
            "roughness": (0.0, 1.0)}
 GRADIENTS = ("dx", "dy")
-CACHE_VERSION = 1
+# View-space vectors (x right, y up in the image): a quarter turn of the image turns their (x, y)
+# with it and a mirror negates x. Derived fields that methods add before augmenting (`jaxdenoise.view`).
+VIEW_VECTORS = ("normal_view",)
+# Derived per-pixel scalars (turned and mirrored like any image).
+DERIVED_SCALARS = ("depth_linear",)
+CACHE_VERSION = 2  # 2: camera matrices in the index
 
 
 def _save_npy(path: Path, array: np.ndarray) -> None:
@@ -87,6 +92,11 @@ def rotate90(fields: dict[str, np.ndarray], k: int = 1) -> dict[str, np.ndarray]
     out = dict(fields)
     for _ in range(int(k) % 4):
         rot = {f: np.rot90(v, 1, axes=(-3, -2)) for f, v in out.items()}
+        for f in VIEW_VECTORS:
+            if f in rot:  # the content turns counter-clockwise: (x, y) -> (-y, x)
+                v = np.array(rot[f])
+                v[..., 0], v[..., 1] = -rot[f][..., 1], rot[f][..., 0]
+                rot[f] = v
         if "dx" in out and "dy" in out:
             rdx = rot["dx"]
             dy = np.zeros_like(rdx)
@@ -102,6 +112,9 @@ def flip_lr(fields: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """Mirror every image left-right: ``I'[y, x] = I[y, W-1-x]``, hence ``dy' = flip(dy)`` and
     ``dx'[y, x] = -flip(dx)[y, x+1]`` (last column 0)."""
     out = {f: np.ascontiguousarray(v[..., ::-1, :]) for f, v in fields.items()}
+    for f in VIEW_VECTORS:
+        if f in out:
+            out[f] = out[f] * np.array([-1.0, 1.0, 1.0], np.float32)[: out[f].shape[-1]]
     if "dx" in out:
         fdx = out["dx"]
         dx = np.zeros_like(fdx)
@@ -115,7 +128,8 @@ def augment(item: dict[str, np.ndarray], rng: np.random.Generator, *, rotate: bo
     """One random augmentation (module docstring) of one crop ``(H, W, C)`` or sequence crop
     ``(T, H, W, C)`` (the same for every field and every frame). Non-image entries (``spp``) pass
     through; ``reverse`` (sequences) plays the frames backwards with probability 1/2."""
-    images = {f: v for f, v in item.items() if f in IMAGE_FIELDS or f == "reference"}
+    images = {f: v for f, v in item.items() if f in IMAGE_FIELDS or f in VIEW_VECTORS or f in DERIVED_SCALARS
+              or f == "reference"}
     rest = {f: v for f, v in item.items() if f not in images}
     images = rotate90(images, int(rng.integers(0, 4)) if rotate else 0)
     if flip and rng.random() < 0.5:
@@ -196,7 +210,9 @@ def build_cache(data_dir: str | os.PathLike, fields: Sequence[str], cache_dir: s
         label = f"{shot.folder.parent.name}/{shot.name}" if shot.frame is not None else shot.name
         frames.append({"array": name, "reference": names[shot.reference], "spp": int(r.spp), "shot": label,
                        "render": r.path.name, "sequence": str(shot.folder.parent) if shot.frame is not None else None,
-                       "frame": shot.frame})
+                       "frame": shot.frame,
+                       **{m: np.asarray(getattr(b, m), np.float64).tolist() for m in MATRIX_FIELDS
+                          if getattr(b, m) is not None}})
     index = {"version": CACHE_VERSION, "fields": fields, "data_dir": str(data_dir), "frames": frames,
              "sequences": len(seqs), "shots": len(singles)}
     write_json(index_path, index)
@@ -232,6 +248,9 @@ class Cache:
         out = {name: np.array(a[..., sl]) for name, sl in self.slices.items()}
         out["reference"] = np.array(self.array(f["reference"])[y:y + size, x:x + size])
         out["spp"] = np.float32(f["spp"])
+        for m in MATRIX_FIELDS:  # the frame's camera (a crop keeps it: view-space inputs need it)
+            if m in f:
+                out[m] = np.asarray(f[m], np.float32)
         return out
 
     def crops(self, n: int, size: int, rng: np.random.Generator, *, spps: Sequence[int] | None = None,
@@ -348,7 +367,7 @@ def _encode(batch: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         if f in BOUNDED:
             lo, hi = BOUNDED[f]
             out[f"u8_{f}"] = np.round((np.clip(v, lo, hi) - lo) / (hi - lo) * 255).astype(np.uint8)
-        elif f == "spp":
+        elif f == "spp" or f in MATRIX_FIELDS:
             out[f] = np.asarray(v, np.float32)
         else:
             out[f"f16_{f}"] = np.asarray(v, np.float16)
@@ -375,7 +394,7 @@ class ExportedCache:
                 self.items[f] = z[k].astype(np.float32) / 255 * (hi - lo) + lo
             elif k.startswith("f16_"):
                 self.items[k[4:]] = z[k].astype(np.float32)
-            elif k == "spp":
+            elif k == "spp" or k in MATRIX_FIELDS:
                 self.items[k] = z[k]
         self.count = int(self.summary["count"])
 
@@ -400,7 +419,8 @@ class ExportedCache:
         for _ in range(int(n)):
             i = int(pool[int(rng.integers(0, pool.size))])
             y, x = int(rng.integers(0, h - c + 1)), int(rng.integers(0, w - c + 1))
-            item = {f: (v[i] if f == "spp" else v[i, y:y + c, x:x + c]) for f, v in self.items.items()}
+            item = {f: (v[i] if f == "spp" or f in MATRIX_FIELDS else v[i, y:y + c, x:x + c])
+                    for f, v in self.items.items()}
             items.append(_augment_maybe(item, rng, aug))
         return _stack(items)
 

@@ -32,6 +32,7 @@ _REGISTRY: dict[str, tuple[str, dict[str, Any]]] = {
     "poisson-l2": ("jaxdenoise.methods.poisson", {"norm": "l2"}),
     "poisson-l1": ("jaxdenoise.methods.poisson", {"norm": "l1"}),
     "demc": ("jaxdenoise.methods.demc", {}),
+    "rae": ("jaxdenoise.methods.rae", {}),
 }
 
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"

@@ -117,6 +117,13 @@ def _zero_albedo(d, ref):
                 albedo_var=np.zeros_like(d["albedo_var"]), albedo2_var=np.zeros_like(d["albedo2_var"])), ref
 
 
+def _zero_features(d, ref):
+    """Every auxiliary feature exactly 0 (a renderer that wrote none: constant features, zero
+    variance across the frame)."""
+    feats = ("albedo", "albedo2", "normal", "position", "depth", "visibility", "roughness")
+    return dict(d, **{k: np.zeros_like(v) for k, v in d.items() if k.split("_var")[0] in feats}), ref
+
+
 def _depth_scaled(scale):
     def f(d, ref):
         return dict(d, depth=d["depth"] * scale, depth_var=d["depth_var"] * scale ** 2,
@@ -188,6 +195,7 @@ CASES: tuple[Case, ...] = (
     Case("black", "all-black colour, zero variance, zero gradients", _black),
     Case("zero_variance", "every variance buffer exactly 0", _zero_variance),
     Case("zero_albedo", "albedo and albedo2 exactly 0 (demodulation by zero)", _zero_albedo),
+    Case("zero_features", "every feature buffer (albedo, normal, position, depth, ...) exactly 0", _zero_features),
     Case("depth_1e-3", "depth and position scaled to 1e-3..5e-3", _depth_scaled(1e-3)),
     Case("depth_1e6", "depth and position scaled to 1e6..5e6", _depth_scaled(1e6)),
     Case("depth_range", "depth log-uniform over 1e-3..1e6 in one frame", _depth_range),

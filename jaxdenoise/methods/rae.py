@@ -1,0 +1,344 @@
+"""RAE: the recurrent denoising autoencoder of Chaitanya, Kaplanyan, Schied, Salvi, Lefohn,
+Nowrouzezahrai, Aila 2017 ("Interactive Reconstruction of Monte Carlo Image Sequences using a
+Recurrent Denoising Autoencoder"), registered as ``rae`` (causal: ``init_state`` / ``step``).
+
+Inputs (Sec. 3.2, 4.1): 7 channels per pixel: the noisy colour demodulated by the first-hit
+albedo (`jaxdenoise.color.demodulate`, its safe epsilon), the view-space shading normal's x and y,
+the linear (view-axis) depth, and the roughness; the view-space quantities come from the frame's
+camera (`jaxdenoise.view`). Our choices (docs/methods/rae.md): the demodulated colour is raised to
+the power 0.2 like the loss's images (Sec. 4.4 says the implementation "raises both the input and
+target images into power 0.2"), and the linear depth is divided by its mean over the frame's
+surface pixels (no absolute scale carries across scenes).
+
+Network (Sec. 4.1-4.2, Fig. 2): five encoder stages (widths 32, 43, 57, 76, 101) of a 3x3 conv and
+a recurrent block (`jaxdenoise.nn.RecurrentBlock`: a conv on the input, concatenation with the
+hidden state, two more convs; output = new hidden state) before 2x2 max pooling; a bottleneck of
+a conv, a recurrent block (101) and a conv; five decoder stages of 2x2 nearest up-sampling,
+concatenation with the encoder stage's recurrent output (the skip) and two 3x3 convs; a linear 3x3
+output conv. Leaky ReLU 0.1 after every other conv; He initialisation. 36 convolutions: 7 encoder,
+10 decoder, 1 output, 6 x 3 recurrent. The output is the illumination in the 0.2-power domain,
+mapped back (``y^5``, odd extension) and remodulated by the albedo. Any resolution (padded to a
+multiple of 32 and cropped back).
+
+Loss (Sec. 4.4): on 7-frame sequences, per frame ``0.8 L_s + 0.1 L_g + 0.1 L_t`` with ``L_s`` the L1
+of the remodulated prediction and the target, both raised to 0.2; ``L_g`` the L1 of their HFEN
+(Laplacian of Gaussian, sigma 1.5); ``L_t`` the L1 of their temporal differences; frames weighted
+by (0.011, 0.044, 0.135, 0.325, 0.607, 0.882, 1), back-propagated through time over an unrolled
+loop (a rolled ``lax.scan`` is ~25x slower to differentiate on a CPU: `jaxdenoise.nn.audit`).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import color, nn, view
+from ..buffers import Buffers
+
+__all__ = ["Config", "needs", "init", "apply", "init_state", "step", "loss", "run_sequence", "inputs",
+           "make_dataset", "batch",
+           "loss_terms", "log_kernel", "num_params", "TRAIN", "WEIGHTS", "AUX"]
+
+# The auxiliary inputs of Sec. 3.2 and their channels (Fig. 3's ladder drops them in this order).
+AUX: dict[str, int] = {"normal": 2, "depth": 1, "roughness": 1}
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """RAE hyperparameters; paper values cited, our choices marked (docs/methods/rae.md)."""
+
+    widths: tuple[int, ...] = (32, 43, 57, 76, 101)  # encoder stages, x4/3 each (Sec. 5.1, Fig. 2)
+    bottleneck: int = 101  # Fig. 2
+    decoder_widths: tuple[int, ...] | None = None  # illegible in Fig. 2: None mirrors the encoder (ours)
+    slope: float = 0.1  # leaky ReLU (Sec. 4.1)
+    aux: tuple[str, ...] = ("normal", "depth", "roughness")  # auxiliary inputs (Sec. 3.2; Fig. 3 ladder)
+    power: float = 0.2  # Sec. 4.4: images raised to 0.2 before the loss (and the input: ours)
+    loss_weights: tuple[float, float, float] = (0.8, 0.1, 0.1)  # w_s, w_g, w_t (Sec. 4.4)
+    frame_weights: tuple[float, ...] = (0.011, 0.044, 0.135, 0.325, 0.607, 0.882, 1.0)  # Sec. 4.4
+    hfen_sigma: float = 1.5  # Sec. 4.4
+    albedo_eps: float = color.ALBEDO_EPS_DEFAULT
+    # Training data (Sec. 4.3, 5.3): 1-spp inputs, 7-frame sequences, batch 4; crop ours (CPU).
+    train_spps: tuple[int, ...] = (1,)
+    train_frames: int = 7
+    train_crop: int = 64
+    train_batch: int = 4
+    stop_probability: float = 0.1  # camera stops (Sec. 4.3; rate ours)
+
+
+# Adam 1e-3, betas 0.9 / 0.99, tenfold geometric ramp-up then 1/sqrt(t) (Sec. 5.3), in steps.
+TRAIN: dict[str, Any] = {"optimizer": "adam", "learning_rate": 1e-3, "adam_b1": 0.9, "adam_b2": 0.99,
+                         "schedule": "rampup_rsqrt", "schedule_every": 200, "schedule_factor": 10.0,
+                         "steps": 2000, "checkpoint_every": 50}
+
+
+def WEIGHTS(config: Config) -> str:
+    return "rae"
+
+
+def _check(config: Config) -> None:
+    bad = [a for a in config.aux if a not in AUX]
+    if bad:
+        raise ValueError(f"rae: config.aux has unknown {bad}; expected some of {list(AUX)}")
+    if len(config.widths) != 5:
+        raise ValueError(f"rae: config.widths must give the five encoder stages, got {config.widths}")
+    if config.decoder_widths is not None and len(config.decoder_widths) != 5:
+        raise ValueError(f"rae: config.decoder_widths must give five decoder stages, got {config.decoder_widths}")
+
+
+def needs(config: Config) -> frozenset[str]:
+    """Colour and albedo (demodulation), and what the auxiliary inputs are derived from: the world
+    normal and position with the frame's camera (view-space normal, linear depth), roughness."""
+    _check(config)
+    out = {"color", "albedo"}
+    if "normal" in config.aux or "depth" in config.aux:
+        out |= {"normal", "world_to_camera"}
+    if "depth" in config.aux:
+        out.add("position")
+    if "roughness" in config.aux:
+        out.add("roughness")
+    return frozenset(out)
+
+
+def in_channels(config: Config) -> int:
+    return 3 + sum(AUX[a] for a in config.aux)
+
+
+# -- network -------------------------------------------------------------------------------------
+
+def _layers(config: Config) -> dict:
+    gain = 2.0 / (1.0 + config.slope ** 2)
+    conv = lambda c: nn.Conv(c, 3, w_init=nn.he_normal_init(gain))
+    act = nn.LeakyRelu(config.slope)
+    dec = config.decoder_widths or tuple(config.widths)
+    return {"enc": [conv(w) for w in config.widths],
+            "rb": [nn.RecurrentBlock(w, slope=config.slope, w_init=nn.he_normal_init(gain))
+                   for w in (*config.widths, config.bottleneck)],
+            "b_in": conv(config.bottleneck), "b_out": conv(config.bottleneck),
+            "dec": [nn.serial(conv(d), act, conv(d), act) for d in dec],
+            "out": nn.Conv(3, 3, w_init=nn.he_normal_init(1.0)), "act": act}
+
+
+def init(key, config: Config) -> dict:
+    _check(config)
+    L = _layers(config)
+    keys = iter(jax.random.split(key, 32))
+    shape = (-1, 64, 64, in_channels(config))
+    p: dict = {"enc": {}, "rb": {}, "dec": {}}
+    skips = []
+    for i, w in enumerate(config.widths):
+        shape, p["enc"][str(i)] = L["enc"][i][0](next(keys), shape)
+        shape, p["rb"][str(i)] = L["rb"][i][0](next(keys), shape)
+        skips.append(shape)
+        shape = shape[:-3] + (shape[-3] // 2, shape[-2] // 2, shape[-1])
+    shape, p["b_in"] = L["b_in"][0](next(keys), shape)
+    shape, p["rb"]["5"] = L["rb"][5][0](next(keys), shape)
+    shape, p["b_out"] = L["b_out"][0](next(keys), shape)
+    for i in reversed(range(5)):
+        cat = skips[i][:-1] + (shape[-1] + skips[i][-1],)
+        shape, p["dec"][str(i)] = L["dec"][i][0](next(keys), cat)
+    _, p["out"] = L["out"][0](next(keys), shape)
+    return p
+
+
+def num_params(config: Config) -> int:
+    shapes = jax.eval_shape(lambda k: init(k, config), jax.random.PRNGKey(0))
+    return int(sum(np.prod(s.shape) for s in jax.tree_util.tree_leaves(shapes)))
+
+
+def _state_shapes(config: Config, lead: tuple[int, ...], h: int, w: int) -> list[tuple[int, ...]]:
+    hp, wp = -(-h // 32) * 32, -(-w // 32) * 32
+    return [lead + (hp >> i, wp >> i, c) for i, c in enumerate((*config.widths, config.bottleneck))]
+
+
+def _forward(params: dict, x: jax.Array, hidden: tuple, config: Config) -> tuple[tuple, jax.Array]:
+    """One frame through the network: padded input ``(..., Hp, Wp, C)``; returns the new hidden
+    states and the linear 3-channel output."""
+    L = _layers(config)
+    act = L["act"][1]
+    pool, up = nn.MaxPool(2)[1], nn.Upsample(2, "nearest")[1]
+    new, skips = [], []
+    for i in range(5):
+        x = act({}, L["enc"][i][1](params["enc"][str(i)], x))
+        x = L["rb"][i][1](params["rb"][str(i)], x, hidden[i])
+        new.append(x)
+        skips.append(x)
+        x = pool({}, x)
+    x = act({}, L["b_in"][1](params["b_in"], x))
+    x = L["rb"][5][1](params["rb"]["5"], x, hidden[5])
+    new.append(x)
+    x = act({}, L["b_out"][1](params["b_out"], x))
+    for i in reversed(range(5)):
+        x = L["dec"][i][1](params["dec"][str(i)], jnp.concatenate([up({}, x), skips[i]], -1))
+    return tuple(new), L["out"][1](params["out"], x)
+
+
+# -- inputs ----------------------------------------------------------------------------------------
+
+def _get(b, f):
+    return getattr(b, f) if isinstance(b, Buffers) else b[f]
+
+
+def inputs(frame: Any, config: Config) -> jax.Array:
+    """The 7 input channels (fewer with ``config.aux``) of a frame or a batch (`Buffers` or a dict
+    of the same names; a dict may carry ``normal_view`` / ``depth_linear`` already derived)."""
+    get = lambda f: _get(frame, f)
+    c = jnp.asarray(get("color"), jnp.float32)
+    c = jnp.where(jnp.isfinite(c), jnp.maximum(c, 0.0), 0.0)
+    demod = color.demodulate(c, get("albedo"), config.albedo_eps)
+    parts = [color.gamma(demod, 1.0 / config.power)]
+    has = (lambda f: f in frame) if isinstance(frame, dict) else (lambda f: False)
+    if "normal" in config.aux:
+        nv = get("normal_view") if has("normal_view") else view.view_normals(get("normal"), get("world_to_camera"))
+        parts.append(jnp.asarray(nv, jnp.float32)[..., :2])
+    if "depth" in config.aux:
+        d = get("depth_linear") if has("depth_linear") else \
+            view.linear_depth(get("position"), get("normal"), get("world_to_camera"))
+        parts.append(normalized_depth(jnp.asarray(d, jnp.float32)))
+    if "roughness" in config.aux:
+        parts.append(jnp.clip(jnp.asarray(get("roughness"), jnp.float32), 0.0, 1.0))
+    x = jnp.concatenate(parts, -1)
+    return jnp.where(jnp.isfinite(x), x, 0.0)
+
+
+def normalized_depth(d: jax.Array) -> jax.Array:
+    """Linear depth divided by its mean over the image's surface pixels (``d > 0``)."""
+    hit = d > 0
+    mean = jnp.sum(jnp.where(hit, d, 0.0), axis=(-3, -2), keepdims=True) / \
+        jnp.maximum(jnp.sum(hit, axis=(-3, -2), keepdims=True), 1)
+    return jnp.where(hit, d / jnp.maximum(mean, 1e-12), 0.0)
+
+
+def _output(y: jax.Array, albedo: Any, config: Config) -> jax.Array:
+    """Network output (0.2-power illumination) -> HDR image, remodulated (Sec. 3.2)."""
+    return color.remodulate(color.inv_gamma(y, 1.0 / config.power), albedo, config.albedo_eps)
+
+
+# -- the causal surface ----------------------------------------------------------------------------
+
+def init_state(buffers: Buffers, config: Config) -> tuple:
+    """Zero hidden states of the six recurrent blocks for frames of ``buffers``' size."""
+    shape = tuple(np.shape(buffers.color))
+    return tuple(jnp.zeros(s, jnp.float32) for s in _state_shapes(config, shape[:-3], shape[-3], shape[-2]))
+
+
+def step(params: dict, state: tuple, buffers: Buffers, config: Config) -> tuple[tuple, jax.Array]:
+    """Denoise the next frame of a sequence; returns the new state and the HDR image."""
+    x, size = nn.pad_to_multiple(inputs(buffers, config), 32)
+    state, y = _forward(params, x, state, config)
+    out = _output(nn.crop_to(y, size), buffers.albedo, config)
+    return state, jnp.maximum(out, 0.0)
+
+
+def apply(params: dict, buffers: Buffers, config: Config) -> jax.Array:
+    """A single frame (or a batch of independent frames): the first step from a zero state."""
+    return step(params, init_state(buffers, config), buffers, config)[1]
+
+
+# -- loss --------------------------------------------------------------------------------------------
+
+def log_kernel(sigma: float) -> np.ndarray:
+    """Laplacian of Gaussian, ``-(1 / (pi s^4)) (1 - r^2 / (2 s^2)) exp(-r^2 / (2 s^2))`` on a
+    ``2 ceil(3 s) + 1`` square, shifted to zero sum (a constant image has no high frequency)."""
+    r = int(math.ceil(3 * sigma))
+    yy, xx = np.mgrid[-r:r + 1, -r:r + 1].astype(np.float64)
+    q = (xx ** 2 + yy ** 2) / (2 * sigma ** 2)
+    k = -(1.0 / (math.pi * sigma ** 4)) * (1 - q) * np.exp(-q)
+    return (k - k.mean()).astype(np.float32)
+
+
+def _hfen(img: jax.Array, sigma: float) -> jax.Array:
+    """The LoG response of each channel (zero padding at the border), any leading axes."""
+    k = jnp.asarray(log_kernel(sigma))
+    c = img.shape[-1]
+    w = jnp.tile(k[:, :, None, None], (1, 1, 1, c))
+    flat = img.reshape((-1,) + img.shape[-3:])
+    y = jax.lax.conv_general_dilated(flat, w, (1, 1), "SAME", dimension_numbers=("NHWC", "HWIO", "NHWC"),
+                                     feature_group_count=c)
+    return y.reshape(img.shape)
+
+
+def loss_terms(pred: jax.Array, target: jax.Array, config: Config) -> dict:
+    """Per-frame ``L_s``, ``L_g``, ``L_t`` of ``(B, T, H, W, 3)`` HDR sequences (``L_t`` of frame 0 is 0)."""
+    p = color.gamma(pred, 1.0 / config.power)
+    t = color.gamma(jnp.maximum(target, 0.0), 1.0 / config.power)
+    ls = jnp.mean(jnp.abs(p - t), axis=(0, 2, 3, 4))
+    lg = jnp.mean(jnp.abs(_hfen(p, config.hfen_sigma) - _hfen(t, config.hfen_sigma)), axis=(0, 2, 3, 4))
+    dt = jnp.abs((p[:, 1:] - p[:, :-1]) - (t[:, 1:] - t[:, :-1]))
+    lt = jnp.concatenate([jnp.zeros((1,)), jnp.mean(dt, axis=(0, 2, 3, 4))])
+    return {"spatial": ls, "hfen": lg, "temporal": lt}
+
+
+def run_sequence(params: dict, x: jax.Array, albedo: jax.Array, config: Config) -> jax.Array:
+    """The training-time pass: ``(B, T, H, W, C)`` inputs through the network frame by frame from a
+    zero state, in an unrolled loop (back-propagation through time stays fast: module docstring);
+    returns the ``(B, T, H, W, 3)`` HDR predictions (not clamped, so the loss keeps its gradient)."""
+    b, t, h, w = x.shape[:4]
+    xp, size = nn.pad_to_multiple(x, 32)
+    state = tuple(jnp.zeros(s, x.dtype) for s in _state_shapes(config, (b,), h, w))
+    outs = []
+    for k in range(t):
+        state, y = _forward(params, xp[:, k], state, config)
+        outs.append(_output(nn.crop_to(y, size), albedo[:, k], config))
+    return jnp.stack(outs, axis=1)
+
+
+def loss(params: dict, batch: dict, config: Config):
+    """Sec. 4.4 on a batch of sequences ``{"x": (B, T, H, W, C), "albedo", "reference": (B, T, H, W, 3)}``:
+    the frames run through the network in order from a zero state (an unrolled loop), and the
+    frame-weighted combination of the three terms is returned (with the terms as aux)."""
+    pred = run_sequence(params, batch["x"], batch["albedo"], config)
+    t = pred.shape[1]
+    terms = loss_terms(pred, batch["reference"], config)
+    fw = jnp.asarray(config.frame_weights[-t:], jnp.float32) if t <= len(config.frame_weights) else jnp.ones((t,))
+    ws, wg, wt = config.loss_weights
+    per_frame = ws * terms["spatial"] + wg * terms["hfen"] + wt * terms["temporal"]
+    value = jnp.sum(fw * per_frame) / jnp.sum(fw)
+    return value, {"terms": {k: jnp.sum(fw * v) / jnp.sum(fw) for k, v in terms.items()}}
+
+
+# -- training data -------------------------------------------------------------------------------
+
+_SOURCE = ("albedo", "normal", "position", "roughness")
+
+
+def make_dataset(data_dir, config: Config, *, progress: bool = True):
+    """The fly-through sequences of ``data_dir`` (``scene/frame_XXXX/``) at ``train_spps``, decoded
+    once (`jaxdenoise.pipeline.open_training_data`), or an export of sequence crops."""
+    from ..pipeline import open_training_data
+
+    _check(config)
+    fields = [f for f in _SOURCE if f in needs(config)]
+    return open_training_data(data_dir, fields, spps=config.train_spps, progress=progress)
+
+
+def _derive(item: dict, config: Config) -> dict:
+    """Add the view-space inputs of a crop (before augmentation: a quarter turn of the image then
+    turns the view-space normal with it, `jaxdenoise.pipeline.augment`) and drop what they came from."""
+    out = {k: np.asarray(item[k]) for k in ("color", "albedo", "reference", "spp")}
+    if "roughness" in config.aux:
+        out["roughness"] = np.asarray(item["roughness"])
+    if "normal" in config.aux:
+        out["normal_view"] = np.asarray(view.view_normals(item["normal"], item["world_to_camera"]))
+    if "depth" in config.aux:
+        out["depth_linear"] = np.asarray(view.linear_depth(item["position"], item["normal"], item["world_to_camera"]))
+    return out
+
+
+def batch(dataset, step: int, config: Config, rng: np.random.Generator) -> dict:
+    """``train_batch`` sequence crops of ``train_frames`` frames (Sec. 4.3: camera stops, backward
+    playback, quarter turns, mirrors, colour modulation), as network inputs."""
+    from ..pipeline import augment
+
+    seq = dataset.sequences(config.train_batch, config.train_crop, rng, frames=config.train_frames,
+                            stop_probability=config.stop_probability, augment=False)
+    items = []
+    for i in range(config.train_batch):
+        item = _derive({k: v[i] for k, v in seq.items()}, config)
+        items.append(augment(item, rng, reverse=True))
+    stacked = {k: np.stack([it[k] for it in items]) for k in items[0]}
+    x = np.asarray(inputs(stacked, config))
+    return {"x": x, "albedo": stacked["albedo"], "reference": stacked["reference"]}

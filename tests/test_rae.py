@@ -1,0 +1,171 @@
+"""RAE (Chaitanya et al. 2017) and the view-space inputs it needs: shapes and the convolution count,
+`step` over a sequence against the training-time pass, the recurrent state carrying information,
+any input size, the loss terms against hand computations and HFEN's LoG against NumPy, the camera
+metadata through EXR, and view-space vectors turning with the image under augmentation."""
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxdenoise import pipeline, view
+from jaxdenoise.buffers import Buffers, BuffersError
+from jaxdenoise.methods import get, rae
+
+TINY = rae.Config(widths=(4, 4, 6, 6, 8), bottleneck=8)
+
+
+def _camera(yaw=0.3, dist=4.0):
+    """A column-vector world_to_camera: rotation about y, then a translation along the view axis."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    m = np.eye(4, dtype=np.float32)
+    m[:3, :3] = [[c, 0, -s], [0, 1, 0], [s, 0, c]]
+    m[2, 3] = dist
+    return m
+
+
+def _frame(h, w, seed=0, camera=None):
+    r = np.random.default_rng(seed)
+    n = r.normal(size=(h, w, 3)).astype(np.float32)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    return Buffers(color=r.uniform(0, 2, (h, w, 3)).astype(np.float32), albedo=r.uniform(0.1, 1, (h, w, 3)).astype(np.float32),
+                   normal=n, position=r.normal(size=(h, w, 3)).astype(np.float32),
+                   roughness=r.uniform(size=(h, w, 1)).astype(np.float32), spp=1,
+                   world_to_camera=_camera() if camera is None else camera)
+
+
+def test_needs_and_the_paper_network():
+    assert get("rae").needs() == {"color", "albedo", "normal", "position", "roughness", "world_to_camera"}
+    assert get("rae").temporal == "causal"
+    p = rae.init(jax.random.PRNGKey(0), rae.Config())
+    kernels = [x for x in jax.tree_util.tree_leaves(p) if x.ndim == 4]
+    assert len(kernels) == 36  # 7 encoder + 10 decoder + 1 output + 6 x 3 recurrent (Sec. 4.1-4.2)
+    assert rae.num_params(rae.Config()) == 2126281  # docs/methods/rae.md: the paper's 3.2 M and why
+    assert p["enc"]["0"]["w"].shape == (3, 3, 7, 32) and p["rb"]["5"]["in"]["w"].shape[-1] == 101
+
+
+def test_missing_camera_is_a_clear_error():
+    from jaxdenoise.api import denoise
+
+    b = _frame(8, 8).replace(world_to_camera=None)
+    with pytest.raises(BuffersError, match="worldToCamera"):
+        denoise(b, method="rae", params=rae.init(jax.random.PRNGKey(0), rae.Config()))
+
+
+@pytest.mark.parametrize("h,w", [(1, 1), (7, 5), (33, 40)])
+def test_any_size(h, w):
+    p = rae.init(jax.random.PRNGKey(0), TINY)
+    b = _frame(h, w)
+    y = rae.apply(p, b, TINY)
+    assert y.shape == (h, w, 3) and bool(jnp.all(jnp.isfinite(y))) and float(jnp.min(y)) >= 0
+
+
+def test_step_over_a_sequence_equals_the_training_pass():
+    """Stepping frame by frame through the causal surface gives the training-time unrolled pass's
+    predictions (clamped at 0 as `step` returns them) within 1e-5 relative."""
+    p = rae.init(jax.random.PRNGKey(2), TINY)
+    frames = [_frame(20, 24, seed=s) for s in range(3)]
+    state = rae.init_state(frames[0], TINY)
+    stepped = []
+    for f in frames:
+        state, y = rae.step(p, state, f, TINY)
+        stepped.append(np.asarray(y))
+    x = jnp.stack([rae.inputs(f, TINY) for f in frames])[None]
+    alb = jnp.stack([f.albedo for f in frames])[None]
+    trained = np.maximum(np.asarray(rae.run_sequence(p, x, alb, TINY))[0], 0)
+    np.testing.assert_allclose(np.stack(stepped), trained, rtol=1e-5, atol=1e-6)
+
+
+def test_the_state_carries_information():
+    """The second frame differs from the same frame run from a zero state; with the recurrent half
+    of every block's first hidden conv zeroed, it does not."""
+    p = rae.init(jax.random.PRNGKey(3), TINY)
+    f0, f1 = _frame(16, 16, seed=0), _frame(16, 16, seed=1)
+    state, _ = rae.step(p, rae.init_state(f0, TINY), f0, TINY)
+    second = np.asarray(rae.step(p, state, f1, TINY)[1])
+    fresh = np.asarray(rae.apply(p, f1, TINY))
+    assert not np.allclose(second, fresh, rtol=1e-4, atol=0)
+    cut = jax.tree_util.tree_map(lambda a: a, p)
+    for k, blk in cut["rb"].items():
+        c = blk["h1"]["w"].shape[2] // 2
+        blk["h1"]["w"] = blk["h1"]["w"].at[:, :, c:, :].set(0.0)
+    state, _ = rae.step(cut, rae.init_state(f0, TINY), f0, TINY)
+    np.testing.assert_allclose(np.asarray(rae.step(cut, state, f1, TINY)[1]), np.asarray(rae.apply(cut, f1, TINY)),
+                               rtol=1e-6, atol=1e-7)
+
+
+def test_log_kernel_against_numpy_and_hfen_on_a_tiny_image():
+    k = rae.log_kernel(1.5)
+    assert k.shape == (11, 11) and abs(float(k.sum())) < 1e-6
+    r = np.arange(-5, 6)
+    yy, xx = np.meshgrid(r, r, indexing="ij")
+    q = (xx ** 2 + yy ** 2) / (2 * 1.5 ** 2)
+    raw = -(1 / (np.pi * 1.5 ** 4)) * (1 - q) * np.exp(-q)
+    np.testing.assert_allclose(k, raw - raw.mean(), atol=1e-7)
+    img = np.random.default_rng(0).uniform(size=(1, 1, 6, 7, 3)).astype(np.float32)
+    got = np.asarray(rae._hfen(jnp.asarray(img), 1.5))[0, 0]
+    pad = np.pad(img[0, 0], ((5, 5), (5, 5), (0, 0)))
+    want = np.zeros_like(img[0, 0])
+    for i in range(6):
+        for j in range(7):
+            want[i, j] = np.einsum("hw,hwc->c", k, pad[i:i + 11, j:j + 11])
+    np.testing.assert_allclose(got, want, atol=1e-5)
+
+
+def test_loss_terms_by_hand():
+    """2 frames of 1x2 pixels: L_s, L_t by hand on the 0.2-power images; L_g of a constant-offset
+    pair is the LoG of the offset's border only, checked against the same kernel."""
+    cfg = rae.Config()
+    pred = np.array([[[[[1.0, 1, 1], [32.0, 32, 32]]], [[[1.0, 1, 1], [1.0, 1, 1]]]]], np.float32)  # (1, 2, 1, 2, 3)
+    targ = np.ones_like(pred)
+    t = rae.loss_terms(jnp.asarray(pred), jnp.asarray(targ), cfg)
+    # 32^0.2 = 2: frame 0 differs by 1 at one of two pixels -> L_s = 0.5; frame 1 equal -> 0
+    np.testing.assert_allclose(np.asarray(t["spatial"]), [0.5, 0.0], atol=1e-6)
+    # temporal: frame 1 - frame 0 of pred is -1 at that pixel, of the target 0 -> mean 0.5
+    np.testing.assert_allclose(np.asarray(t["temporal"]), [0.0, 0.5], atol=1e-6)
+    assert float(t["hfen"][1]) == 0.0 and float(t["hfen"][0]) > 0
+    v, _ = rae.loss(rae.init(jax.random.PRNGKey(0), TINY), {"x": np.zeros((1, 2, 8, 8, 7), np.float32),
+                                                            "albedo": np.ones((1, 2, 8, 8, 3), np.float32),
+                                                            "reference": np.ones((1, 2, 8, 8, 3), np.float32)}, TINY)
+    assert np.isfinite(float(v))
+
+
+def test_camera_metadata_round_trips_through_exr(tmp_path):
+    from jaxdenoise.io import read_buffers, write_buffers
+
+    b = _frame(4, 5)
+    ndc = np.arange(16, dtype=np.float32).reshape(4, 4)
+    write_buffers(tmp_path / "f.exr", b.replace(world_to_ndc=ndc))
+    r, attrs = read_buffers(tmp_path / "f.exr")
+    np.testing.assert_array_equal(r.world_to_camera, b.world_to_camera)
+    np.testing.assert_array_equal(r.world_to_ndc, ndc)
+    # OpenEXR's row-vector convention in the file: the transpose
+    np.testing.assert_allclose(np.asarray(attrs["worldToCamera"]).reshape(4, 4), b.world_to_camera.T)
+
+
+def test_view_space_quantities():
+    m = _camera(yaw=0.0, dist=3.0)
+    n = np.array([[[0.0, 0.0, -1.0], [1.0, 0.0, 0.0]]], np.float32)  # facing the camera; pointing right
+    p = np.array([[[0.0, 0.0, 2.0], [1.0, 1.0, 0.0]]], np.float32)
+    np.testing.assert_allclose(np.asarray(view.view_normals(n, m)), n, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(view.linear_depth(p, n, m))[..., 0], [[5.0, 3.0]], atol=1e-6)
+    none = np.zeros_like(n)
+    assert np.all(np.asarray(view.view_normals(none, m)) == 0) and np.all(np.asarray(view.linear_depth(p, none, m)) == 0)
+    turned = _camera(yaw=0.5, dist=3.0)
+    vn = np.asarray(view.view_normals(n, turned))
+    np.testing.assert_allclose(np.linalg.norm(vn, axis=-1), 1.0, atol=1e-6)
+    np.testing.assert_allclose(vn[0, 0], turned[:3, :3] @ n[0, 0], atol=1e-6)
+
+
+def test_view_space_vectors_turn_with_the_image():
+    """A quarter turn of the image (content counter-clockwise) turns (x, y) to (-y, x); a mirror
+    negates x; world-space normals are left as they are."""
+    v = np.zeros((3, 4, 3), np.float32)
+    v[..., 0] = 1.0  # every view normal points right
+    out = pipeline.rotate90({"normal_view": v, "normal": v.copy()}, 1)
+    np.testing.assert_allclose(out["normal_view"][..., :2], np.broadcast_to([0.0, 1.0], (4, 3, 2)))
+    np.testing.assert_array_equal(out["normal"], np.rot90(v, 1, axes=(-3, -2)))
+    np.testing.assert_allclose(pipeline.flip_lr({"normal_view": v})["normal_view"][..., 0], -1.0)
