@@ -6,7 +6,7 @@ pipeline, validated on frames it never trained on against the Gaussian filter's 
         --minutes 20 --out docs/results/unet_20min.json
 
 - network: U-Net with stages of 16 / 32 / 64 channels (two 3x3 convs + leaky ReLU 0.1 each), 2x2
-  max pooling, nearest up-sampling, skip concatenation, linear 3-channel output (78k parameters);
+  max pooling, nearest up-sampling, skip concatenation, linear 3-channel output (304k parameters);
 - input: ``log1p`` of the 4-spp colour, albedo and shading normal (9 channels); output
   ``expm1(y)`` (a first run clamped ``y`` at 0 and its output died: every pixel 0 after the first
   steps, no gradient left); loss: RelMSE ``(y - r)^2 / (r^2 + 0.01)`` (the metric);

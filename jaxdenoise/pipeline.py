@@ -166,9 +166,14 @@ def _key(fields: Sequence[str], files: list[Path]) -> str:
 
 
 def build_cache(data_dir: str | os.PathLike, fields: Sequence[str], cache_dir: str | os.PathLike, *,
-                spps: Sequence[int] | None = None, progress: bool = False) -> "Cache":
+                spps: Sequence[int] | None = None, progress: bool = False,
+                fill: dict[str, float] | None = None) -> "Cache":
     """Decode the renders of ``data_dir`` (those at ``spps``, or all) for ``fields`` (``color``
-    first, others in the given order) into ``cache_dir`` once; reuse it when nothing changed."""
+    first, others in the given order) into ``cache_dir`` once; reuse it when nothing changed.
+    ``fill`` names the constant a method documents for a field a render left out (data_gen leaves a
+    constant buffer out, e.g. roughness in a scene whose BSDFs all share one); the frames filled are
+    listed in the index. Any other missing field is an error naming the file."""
+    fill = dict(fill or {})
     from .data import discover, sequences
     from .io import read_buffers, read_image
 
@@ -183,7 +188,7 @@ def build_cache(data_dir: str | os.PathLike, fields: Sequence[str], cache_dir: s
     if not renders:
         raise FileNotFoundError(f"{data_dir}: no render" + (f" at spp {sorted(wanted)}" if wanted else ""))
     files = sorted({r.path for _, r in renders} | {s.reference for s, _ in renders})
-    folder = Path(cache_dir) / _key(fields, files)
+    folder = Path(cache_dir) / _key(fields + [f"fill:{k}={v}" for k, v in sorted(fill.items())], files)
     index_path = folder / "index.json"
     if index_path.is_file():
         return Cache(folder)
@@ -200,6 +205,9 @@ def build_cache(data_dir: str | os.PathLike, fields: Sequence[str], cache_dir: s
             names[shot.reference] = f"ref_{len(names):05d}.npy"
             _save_npy(folder / names[shot.reference], np.asarray(read_image(shot.reference), np.float32)[..., :3])
         b, _ = read_buffers(r.path)
+        filled = [f for f in fields if getattr(b, f) is None and f in fill]
+        if filled:
+            b = b.replace(**{f: np.full(b.shape + (len(CHANNELS[f]),), fill[f], np.float32) for f in filled})
         missing = [f for f in fields if getattr(b, f) is None]
         if missing:
             raise ValueError(f"{r.path}: lacks buffer(s) {missing} that the cache was asked for")
@@ -210,7 +218,7 @@ def build_cache(data_dir: str | os.PathLike, fields: Sequence[str], cache_dir: s
         label = f"{shot.folder.parent.name}/{shot.name}" if shot.frame is not None else shot.name
         frames.append({"array": name, "reference": names[shot.reference], "spp": int(r.spp), "shot": label,
                        "render": r.path.name, "sequence": str(shot.folder.parent) if shot.frame is not None else None,
-                       "frame": shot.frame,
+                       "frame": shot.frame, "filled": filled,
                        **{m: np.asarray(getattr(b, m), np.float64).tolist() for m in MATRIX_FIELDS
                           if getattr(b, m) is not None}})
     index = {"version": CACHE_VERSION, "fields": fields, "data_dir": str(data_dir), "frames": frames,
@@ -433,7 +441,8 @@ def default_cache_dir() -> Path:
 
 
 def open_training_data(source: str | os.PathLike, fields: Sequence[str], *, spps: Sequence[int] | None = None,
-                       cache_dir: str | os.PathLike | None = None, progress: bool = False) -> "Cache | ExportedCache":
+                       cache_dir: str | os.PathLike | None = None, progress: bool = False,
+                       fill: dict[str, float] | None = None) -> "Cache | ExportedCache":
     """A data_gen folder (decoded once into a `Cache` under ``cache_dir``) or an export ``.npz``
     (`load_export`; it must hold ``fields``): the one entry point of the networks' ``make_dataset``,
     so the same training command runs here and on a machine that has only the export."""
@@ -446,4 +455,4 @@ def open_training_data(source: str | os.PathLike, fields: Sequence[str], *, spps
         if missing:
             raise ValueError(f"{source}: the export lacks {missing} (it holds {sorted(ex.items)})")
         return ex
-    return build_cache(source, fields, cache_dir or default_cache_dir(), spps=spps, progress=progress)
+    return build_cache(source, fields, cache_dir or default_cache_dir(), spps=spps, progress=progress, fill=fill)

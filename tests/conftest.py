@@ -13,7 +13,7 @@ from jaxdenoise.buffers import CHANNELS, Buffers
 
 
 def synthetic_frame(h: int = 8, w: int = 10, seed: int = 0, spp: int | None = 4,
-                    fields=tuple(CHANNELS)) -> Buffers:
+                    fields=tuple(CHANNELS), camera: bool = True) -> Buffers:
     """A frame with plausible values in every requested buffer (radiance >= 0, normals unit)."""
     rng = np.random.default_rng(seed)
     out = {}
@@ -31,6 +31,10 @@ def synthetic_frame(h: int = 8, w: int = 10, seed: int = 0, spp: int | None = 4,
         out[f] = v.astype(np.float32)
     if spp is not None:
         out["spp"] = np.float32(spp)
+    if camera:  # 5 units in front of the origin, looking along +z (jaxdenoise.view conventions)
+        m = np.eye(4, dtype=np.float32)
+        m[2, 3] = 5.0
+        out["world_to_camera"] = m
     return Buffers(**out)
 
 

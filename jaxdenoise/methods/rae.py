@@ -39,7 +39,7 @@ import numpy as np
 from .. import color, nn, view
 from ..buffers import Buffers
 
-__all__ = ["Config", "needs", "init", "apply", "init_state", "step", "loss", "run_sequence", "inputs",
+__all__ = ["Config", "needs", "required", "init", "apply", "init_state", "step", "loss", "run_sequence", "inputs",
            "make_dataset", "batch",
            "loss_terms", "log_kernel", "num_params", "TRAIN", "WEIGHTS", "AUX"]
 
@@ -61,6 +61,10 @@ class Config:
     frame_weights: tuple[float, ...] = (0.011, 0.044, 0.135, 0.325, 0.607, 0.882, 1.0)  # Sec. 4.4
     hfen_sigma: float = 1.5  # Sec. 4.4
     albedo_eps: float = color.ALBEDO_EPS_DEFAULT
+    # A frame without roughness: data_gen leaves the buffer out when every BSDF of the scene has the
+    # same roughness (its shot.json says which); in our procedural scenes that is an all-diffuse
+    # scene, roughness 1 (data_gen.integrator's rule). Documented constant, docs/methods/rae.md.
+    missing_roughness: float = 1.0
     # Training data (Sec. 4.3, 5.3): 1-spp inputs, 7-frame sequences, batch 4; crop ours (CPU).
     train_spps: tuple[int, ...] = (1,)
     train_frames: int = 7
@@ -101,6 +105,11 @@ def needs(config: Config) -> frozenset[str]:
     if "roughness" in config.aux:
         out.add("roughness")
     return frozenset(out)
+
+
+def required(config: Config) -> frozenset[str]:
+    """`needs` without roughness: a frame that lacks it gets ``config.missing_roughness``."""
+    return needs(config) - {"roughness"}
 
 
 def in_channels(config: Config) -> int:
@@ -199,7 +208,10 @@ def inputs(frame: Any, config: Config) -> jax.Array:
             view.linear_depth(get("position"), get("normal"), get("world_to_camera"))
         parts.append(normalized_depth(jnp.asarray(d, jnp.float32)))
     if "roughness" in config.aux:
-        parts.append(jnp.clip(jnp.asarray(get("roughness"), jnp.float32), 0.0, 1.0))
+        rough = get("roughness") if (has("roughness") or not isinstance(frame, dict)) else None
+        if rough is None:
+            rough = jnp.full(c.shape[:-1] + (1,), config.missing_roughness, jnp.float32)
+        parts.append(jnp.clip(jnp.asarray(rough, jnp.float32), 0.0, 1.0))
     x = jnp.concatenate(parts, -1)
     return jnp.where(jnp.isfinite(x), x, 0.0)
 
@@ -312,7 +324,8 @@ def make_dataset(data_dir, config: Config, *, progress: bool = True):
 
     _check(config)
     fields = [f for f in _SOURCE if f in needs(config)]
-    return open_training_data(data_dir, fields, spps=config.train_spps, progress=progress)
+    return open_training_data(data_dir, fields, spps=config.train_spps, progress=progress,
+                              fill={"roughness": config.missing_roughness})
 
 
 def _derive(item: dict, config: Config) -> dict:

@@ -40,6 +40,11 @@ from jaxdenoise import metrics
 from jaxdenoise.buffers import ALL_FIELDS, Buffers, BuffersError
 
 H, W = 8, 8
+
+# Every case's camera (frame metadata): 5 units in front of the origin looking along +z, a 90-degree
+# field of view (`jaxdenoise.view` conventions), float32 whatever the case's dtype.
+CAMERA = {"world_to_camera": np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 5], [0, 0, 0, 1]], np.float32),
+          "world_to_ndc": np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 4.99], [0, 0, 1, 5]], np.float32)}
 FIREFLY = 1e6
 
 
@@ -181,7 +186,7 @@ class Case:
 
     def buffers(self) -> tuple[Buffers, np.ndarray]:
         d, ref = self.arrays()
-        return Buffers(**d, spp=np.asarray(4.0, self.dtype)), ref
+        return Buffers(**d, spp=np.asarray(4.0, self.dtype), **CAMERA), ref
 
 
 # A size error must say which size (or the minimum it needs); a dtype error must name the dtype.
@@ -687,4 +692,4 @@ def check_solver(name: str, case: Case, alpha: float, *, gradients: str = "rende
 def _all_fields_present() -> bool:
     """Every case carries every buffer (so a method's ``needs`` decides what it reads)."""
     d, _ = CASES[0].arrays()
-    return set(d) | {"spp"} == set(ALL_FIELDS)
+    return set(d) | {"spp"} | set(CAMERA) == set(ALL_FIELDS)

@@ -1,0 +1,76 @@
+"""RAE's temporal stability and quality over fly-throughs it never saw, against the same network run
+frame by frame from a zero state, OIDN per frame, LBF (its 7-frame window) and the Gaussian, at
+every sampling rate of the data (the network is trained at 1 spp: 2-16 spp test generalisation).
+
+    python experiments/rae_temporal.py --data data/rae_test --out docs/results/rae_temporal.json
+
+Each sequence (``scene/frame_XXXX/``) at each rate is run through the sequence driver (`jaxdenoise.
+load(...).sequence`: state carried, windows read) except ``rae (per frame)``, which calls the same
+weights' `apply` on every frame (the first step from a zero state). Scores: mean RelMSE and SSIM
+over frames and the temporal error (`jaxdenoise.metrics.temporal_error`), averaged over sequences.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from jaxdenoise import load, metrics  # noqa: E402
+from jaxdenoise.data import discover, renders_by_spp, sequences  # noqa: E402
+from jaxdenoise.fsutil import write_json  # noqa: E402
+from jaxdenoise.io import read_buffers, read_image  # noqa: E402
+from jaxdenoise.methods import get  # noqa: E402
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", default="data/rae_test")
+    ap.add_argument("--methods", default="input,gaussian,lbf,oidn,rae,rae-per-frame")
+    ap.add_argument("--weights", default=None, help="rae weights folder (default: shipped)")
+    ap.add_argument("--out", default="docs/results/rae_temporal.json")
+    args = ap.parse_args()
+    seqs, _ = sequences(discover(args.data))
+    if not seqs:
+        raise SystemExit(f"{args.data}: no frame_XXXX/ sequence")
+    names = args.methods.split(",")
+    fns = {}
+    for n in names:
+        base = "rae" if n == "rae-per-frame" else n
+        if get(base).requirements() is not None:
+            print(f"skipping {n}: {get(base).requirements()}")
+            continue
+        fns[n] = load(base, args.weights if base == "rae" else None)
+    res: dict = {"data": args.data, "sequences": [str(s.folder) for s in seqs], "rows": []}
+    for seq in seqs:
+        by_spp = [renders_by_spp(s) for s in seq.shots]
+        refs = np.stack([np.asarray(read_image(s.reference), np.float32)[..., :3] for s in seq.shots])
+        for spp in sorted(set.intersection(*(set(b) for b in by_spp))):
+            frames = [read_buffers(b[spp][0].path)[0] for b in by_spp]
+            for n, fn in fns.items():
+                if n == "rae-per-frame":
+                    outs = np.stack([np.asarray(fn(f)) for f in frames])
+                else:
+                    outs = np.stack([np.asarray(o) for o in fn.sequence(frames)])
+                row = {"sequence": seq.folder.name, "spp": spp, "method": n,
+                       "relmse": float(np.mean([metrics.relmse(o, r) for o, r in zip(outs, refs)])),
+                       "ssim": float(np.mean([metrics.ssim(o, r) for o, r in zip(outs, refs)])),
+                       "temporal": float(metrics.temporal_error(outs, refs))}
+                res["rows"].append(row)
+                print(row, flush=True)
+    write_json(Path(args.out), res)
+    spps = sorted({r["spp"] for r in res["rows"]})
+    print("\n| method | spp | RelMSE | SSIM | temporal error |\n|---|---:|---:|---:|---:|")
+    for n in fns:
+        for s in spps:
+            rs = [r for r in res["rows"] if r["method"] == n and r["spp"] == s]
+            print(f"| {n} | {s} | {np.mean([r['relmse'] for r in rs]):.4g} | {np.mean([r['ssim'] for r in rs]):.4f} | "
+                  f"{np.mean([r['temporal'] for r in rs]):.4g} |")
+
+
+if __name__ == "__main__":
+    main()
