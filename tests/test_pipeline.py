@@ -126,3 +126,23 @@ def test_export_is_compact_and_round_trips(folder, tmp_path):
     np.testing.assert_allclose(b["normal"][..., 2], 1.0, atol=1 / 255)
     seq = cache.export(tmp_path / "seq.npz", n=4, size=8, rng=np.random.default_rng(0), frames=7)
     assert pipeline.load_export(tmp_path / "seq.npz").items["color"].shape == (seq["count"], 7, 8, 8, 3)
+
+
+def test_cache_fills_a_left_out_constant_buffer_and_keeps_the_camera(tmp_path):
+    """A render without roughness (data_gen leaves a constant buffer out) gets the constant the
+    method documents, the frame is listed as filled, and the camera matrices reach the crops."""
+    from conftest import synthetic_frame
+    from jaxdenoise.io import write_buffers, write_image
+
+    shot = tmp_path / "data" / "shot"
+    shot.mkdir(parents=True)
+    f = synthetic_frame(8, 8, fields=("color", "albedo"))
+    write_buffers(shot / "spp0001_00.exr", f.replace(spp=np.float32(1)))
+    write_image(shot / "reference.exr", np.ones((8, 8, 3), np.float32))
+    with pytest.raises(ValueError, match="lacks buffer"):
+        pipeline.build_cache(tmp_path / "data", ["albedo", "roughness"], tmp_path / "cache")
+    cache = pipeline.build_cache(tmp_path / "data", ["albedo", "roughness"], tmp_path / "cache", fill={"roughness": 1.0})
+    assert cache.frames[0]["filled"] == ["roughness"]
+    crop = cache.crops(1, 8, np.random.default_rng(0), augment=False)
+    assert np.all(crop["roughness"] == 1.0)
+    np.testing.assert_array_equal(crop["world_to_camera"][0], f.world_to_camera)
