@@ -31,7 +31,12 @@ from jaxdenoise.fsutil import write_json  # noqa: E402
 def frame(h: int, w: int, fields) -> Buffers:
     r = np.random.default_rng(0)
     out = {}
+    camera = np.eye(4, dtype=np.float32)
+    camera[2, 3] = 5.0  # 5 units in front of the origin (jaxdenoise.view conventions)
     for f in fields:
+        if f in ("world_to_camera", "world_to_ndc"):
+            out[f] = camera
+            continue
         v = r.uniform(0.0, 1.0, (h, w, len(CHANNELS[f]))).astype(np.float32)
         if f == "normal":
             v = v * 2 - 1
@@ -48,14 +53,19 @@ def main() -> None:
     ap.add_argument("--out", default="docs/results/network_speed.json")
     args = ap.parse_args()
     w, h = (int(v) for v in args.size.split("x"))
-    res = {"size": [w, h], "runs": args.runs, "load_before": os.getloadavg(), "jax": jax.__version__,
+    res = {"size": [w, h], "runs": args.runs, "note": "causal methods: one `step` (state carried in and out)", "load_before": os.getloadavg(), "jax": jax.__version__,
            "cpus": os.cpu_count(), "methods": {}}
     res["matmul_2048"] = matmul(2048, args.runs)
     res["oidn"] = oidn(h, w, args.runs)
     for name in args.methods.split(","):
         m, params = resolve(name)
         b = prepare(m, frame(h, w, sorted(m.needs() - {"spp"})))
-        r = timed(lambda p, x: m.module.apply(p, x, m.config), params, b, runs=args.runs)
+        if m.temporal == "causal":  # one step of a sequence, the state carried in and out
+            state = m.module.init_state(b, m.config)
+            r = timed(lambda p, st, x: m.module.step(p, st, x, m.config), params, state, b, runs=args.runs)
+            r["state_mb"] = sum(int(np.prod(a.shape)) * 4 for a in jax.tree_util.tree_leaves(state)) / 2**20
+        else:
+            r = timed(lambda p, x: m.module.apply(p, x, m.config), params, b, runs=args.runs)
         r["params"] = int(sum(np.prod(a.shape) for a in jax.tree_util.tree_leaves(params)))
         r["vs_oidn"] = r["median_s"] / res["oidn"].get("median_s", float("nan"))
         r["vs_matmul_rate"] = r["gflops"] / res["matmul_2048"]["gflops"]

@@ -21,6 +21,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from jaxdenoise import load, metrics  # noqa: E402
+from jaxdenoise.buffers import BuffersError  # noqa: E402
 from jaxdenoise.data import discover, renders_by_spp, sequences  # noqa: E402
 from jaxdenoise.fsutil import write_json  # noqa: E402
 from jaxdenoise.io import read_buffers, read_image  # noqa: E402
@@ -52,10 +53,16 @@ def main() -> None:
         for spp in sorted(set.intersection(*(set(b) for b in by_spp))):
             frames = [read_buffers(b[spp][0].path)[0] for b in by_spp]
             for n, fn in fns.items():
-                if n == "rae-per-frame":
-                    outs = np.stack([np.asarray(fn(f)) for f in frames])
-                else:
-                    outs = np.stack([np.asarray(o) for o in fn.sequence(frames)])
+                try:
+                    if n == "rae-per-frame":
+                        outs = np.stack([np.asarray(fn(f)) for f in frames])
+                    else:
+                        outs = np.stack([np.asarray(o) for o in fn.sequence(frames)])
+                except BuffersError as e:  # e.g. lbf at 1 spp: no variance can be estimated from one sample
+                    res.setdefault("not_run", []).append({"sequence": seq.folder.name, "spp": spp, "method": n,
+                                                          "reason": str(e)})
+                    print(f"not run: {n} at {spp} spp: {e}", flush=True)
+                    continue
                 row = {"sequence": seq.folder.name, "spp": spp, "method": n,
                        "relmse": float(np.mean([metrics.relmse(o, r) for o, r in zip(outs, refs)])),
                        "ssim": float(np.mean([metrics.ssim(o, r) for o, r in zip(outs, refs)])),
@@ -68,6 +75,8 @@ def main() -> None:
     for n in fns:
         for s in spps:
             rs = [r for r in res["rows"] if r["method"] == n and r["spp"] == s]
+            if not rs:
+                continue
             print(f"| {n} | {s} | {np.mean([r['relmse'] for r in rs]):.4g} | {np.mean([r['ssim'] for r in rs]):.4f} | "
                   f"{np.mean([r['temporal'] for r in rs]):.4g} |")
 
