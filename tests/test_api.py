@@ -34,10 +34,11 @@ def test_input_is_identity_and_gaussian_smooths():
 
 def test_prepare_feeds_only_what_method_reads():
     b = synthetic_frame()
-    # the frame's metadata (spp) always travels with it (DESIGN.md "Methods")
-    assert prepare(get("gaussian"), b).present() == {"color", "spp"}
-    assert prepare(get("oidn"), b).present() == {"color", "albedo", "normal", "spp"}
-    assert prepare(get("oidn"), b.only(())).present() == {"color", "spp"}  # OIDN runs on colour alone
+    # the frame's metadata (spp, the camera) always travels with it (DESIGN.md "Methods")
+    meta = {"spp", "world_to_camera"}
+    assert prepare(get("gaussian"), b).present() == {"color"} | meta
+    assert prepare(get("oidn"), b).present() == {"color", "albedo", "normal"} | meta
+    assert prepare(get("oidn"), b.only(())).present() == {"color"} | meta  # OIDN runs on colour alone
 
 
 def test_unknown_method_and_nonfinite_input():

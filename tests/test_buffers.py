@@ -49,8 +49,8 @@ def test_batched_and_stack():
 def test_only_keeps_color_and_named():
     b = synthetic_frame()
     o = b.only({"albedo"})
-    assert o.present() == {"color", "albedo", "spp"}  # metadata is never dropped
-    assert o.spp == b.spp
+    assert o.present() == {"color", "albedo", "spp", "world_to_camera"}  # metadata is never dropped
+    assert o.spp == b.spp and o.world_to_camera is b.world_to_camera
 
 
 def test_channel_table_is_consistent():

@@ -22,9 +22,10 @@ def test_roundtrip_every_channel(tmp_path):
 
 
 def test_missing_optional_layers_are_none(tmp_path):
-    b = synthetic_frame(fields=("color", "albedo"))
+    b = synthetic_frame(fields=("color", "albedo"), camera=False)
     back, _ = read_buffers(write_buffers(tmp_path / "f.exr", b))
     assert back.normal is None and back.dx is None and back.present() == {"color", "albedo", "spp"}
+    assert back.world_to_camera is None and back.world_to_ndc is None  # no camera in the header: None
 
 
 def test_not_exr(tmp_path):
