@@ -13,7 +13,6 @@ mean and spread over the two seeds) and writes the per-frame scores as JSON.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -23,9 +22,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from jaxdenoise import load, metrics  # noqa: E402
-from jaxdenoise.data import discover, renders_by_spp  # noqa: E402
 from jaxdenoise.fsutil import write_json  # noqa: E402
-from jaxdenoise.io import read_buffers, read_image  # noqa: E402
+from jaxdenoise.methods import get  # noqa: E402
+from jaxdenoise.train import load_validation  # noqa: E402
 
 
 def main() -> None:
@@ -37,11 +36,9 @@ def main() -> None:
     args = ap.parse_args()
     spps = [int(s) for s in args.spp.split(",")]
     folders = sorted(p.parent for p in Path(args.weights).rglob("params.npz") if p.parent.name != "weights")
-    frames = []
-    for shot in discover(args.data):
-        ref = np.asarray(read_image(shot.reference), np.float32)[..., :3]
-        for spp, renders in renders_by_spp(shot, set(spps)).items():
-            frames.append((shot.name, spp, read_buffers(renders[0].path)[0], ref))
+    # the project's loader of scored frames: the first render of each shot at each rate
+    frames = [(Path(f["file"]).parent.name, f["spp"], f["buffers"], f["reference"])
+              for f in load_validation(get("demc"), args.data, spps)]
     scores: dict[str, list] = {}
     for folder in folders:
         name = folder.name if folder.name != "best" else folder.parent.name

@@ -20,10 +20,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from jaxdenoise import load, metrics, train  # noqa: E402
-from jaxdenoise.data import discover, renders_by_spp  # noqa: E402
 from jaxdenoise.fsutil import write_json  # noqa: E402
-from jaxdenoise.io import read_buffers, read_image  # noqa: E402
-from jaxdenoise.methods import demc  # noqa: E402
+from jaxdenoise.methods import demc, get  # noqa: E402
 
 
 def main() -> None:
@@ -36,11 +34,7 @@ def main() -> None:
     ap.add_argument("--crop", type=int, default=64)
     ap.add_argument("--out", default="docs/results/demc_position_norm.json")
     args = ap.parse_args()
-    frames = []
-    for shot in discover(args.data):
-        ref = np.asarray(read_image(shot.reference), np.float32)[..., :3]
-        for spp, renders in renders_by_spp(shot, {4}).items():
-            frames.append((shot.name, read_buffers(renders[0].path)[0], ref))
+    frames = [(f["file"], f["buffers"], f["reference"]) for f in train.load_validation(get("demc"), args.data, (4,))]
     dataset = None
     res = {"steps": args.steps, "batch": args.batch, "crop": args.crop, "runs": {}}
     for mode in ("frame", "global"):
