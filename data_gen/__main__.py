@@ -6,6 +6,8 @@ import shlex
 import sys
 import time
 
+from .gradient import DEFAULT_SHIFT, PRIMALS, SHIFTS
+
 
 def _spp_list(text: str) -> list[int]:
     try:
@@ -34,6 +36,11 @@ def main(argv: list[str] | None = None) -> int:
         q.add_argument("--methods", default=None, help="render only what these methods need (comma list)")
         q.add_argument("--buffers", default=None, help="render exactly these buffers (comma list)")
         q.add_argument("--seed", type=int, default=0)
+        q.add_argument("--shift", choices=SHIFTS, default=None,
+                       help=f"shift mapping of the gradient buffers dx, dy (default {DEFAULT_SHIFT})")
+        q.add_argument("--primal", choices=PRIMALS, default="base",
+                       help="colour of gradient frames: the plain base paths (default) or, with --shift "
+                            "reconnect, the G-PT primal (MIS over each pixel's neighbour pairs)")
         q.add_argument("--out", required=True, help="output folder")
         q.add_argument("--variant", default="llvm_ad_rgb", help="preferred Mitsuba variant")
         q.add_argument("--no-progress", action="store_true")
@@ -77,7 +84,8 @@ def main(argv: list[str] | None = None) -> int:
         if a.frames:
             rec = render_sequence(scene, a.out, n_frames=a.frames, spp=a.spp, instances=a.instances,
                                   ref_spp=a.ref_spp, seed=a.seed, buffers=_names(a.buffers),
-                                  progress=not a.no_progress, max_depth=a.max_depth, methods=_names(a.methods))
+                                  progress=not a.no_progress, max_depth=a.max_depth, methods=_names(a.methods),
+                                  shift=a.shift, primal=a.primal)
             frames = rec.get("frames", [])
             n = sum(len(f.get("files", {})) for f in frames)
             secs = sum(f.get("render_seconds", 0.0) for f in frames)
@@ -86,7 +94,8 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         rec = render_shot(scene, a.out, spp=a.spp, ref_spp=a.ref_spp, instances=a.instances,
                           methods=_names(a.methods), buffers=_names(a.buffers), max_depth=a.max_depth,
-                          seed=a.seed, progress=not a.no_progress, width=a.width, height=a.height)
+                          seed=a.seed, progress=not a.no_progress, width=a.width, height=a.height,
+                          shift=a.shift, primal=a.primal)
         rec["command"] = command
         ref = rec.get("reference") or {}
         noise = f", reference RelMSE(halves) {ref['relmse_halves']:.2e}" if ref else ""
@@ -98,7 +107,8 @@ def main(argv: list[str] | None = None) -> int:
     m = generate_dataset(a.family, a.count, a.out, width=a.res, spp=a.spp, instances=a.instances,
                          ref_spp=a.ref_spp, seed=a.seed, start=a.start, workers=a.workers, max_depth=a.max_depth,
                          methods=_names(a.methods), buffers=_names(a.buffers), progress=not a.no_progress,
-                         command=command, note=a.note, scheduler=a.scheduler, frames=a.frames)
+                         command=command, note=a.note, scheduler=a.scheduler, frames=a.frames,
+                         shift=a.shift, primal=a.primal)
     size = dataset_size_bytes(a.out) / 2**20
     last = m["runs"][-1]
     where = (f", Dask {a.scheduler}: {last.get('workers', '?')} worker(s), {last.get('retries', 0)} retried shot(s)"

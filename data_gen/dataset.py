@@ -32,7 +32,8 @@ def _render_one(job: dict) -> tuple[str, dict]:
         seq = render_sequence(scene, job["dir"], n_frames=job["frames"], instances=job["instances"], spp=job["spp"],
                               ref_spp=job["ref_spp"], seed=job["scene_seed"], buffers=job["buffers"],
                               methods=job["methods"], max_depth=job["max_depth"], progress=job["progress"],
-                              samples_per_pass=job["samples_per_pass"])
+                              samples_per_pass=job["samples_per_pass"], shift=job.get("shift"),
+                              primal=job.get("primal", "base"))
         rec = {"frames": len(seq["frames"]), "scene": scene["__name__"],
                "render_seconds": float(sum(f.get("render_seconds", 0.0) for f in seq["frames"])),
                "family": scene.get("__family__", job["family"]), "requested_family": job["family"]}
@@ -40,7 +41,7 @@ def _render_one(job: dict) -> tuple[str, dict]:
     rec = render_shot(scene, job["dir"], spp=job["spp"], ref_spp=job["ref_spp"], instances=job["instances"],
                       methods=job["methods"], buffers=job["buffers"], max_depth=job["max_depth"],
                       seed=job["scene_seed"], progress=job["progress"], samples_per_pass=job["samples_per_pass"],
-                      _stop_after=job.get("_stop_after"))
+                      shift=job.get("shift"), primal=job.get("primal", "base"), _stop_after=job.get("_stop_after"))
     rec["family"] = scene.get("__family__", job["family"])
     rec["requested_family"] = job["family"]
     return job["name"], rec
@@ -52,6 +53,7 @@ def generate_dataset(family: str, count: int, out: str | os.PathLike, *, width: 
                      methods: Iterable[str] | None = None, buffers: Iterable[str] | None = None,
                      progress: bool = True, samples_per_pass: int = 1 << 20, command: str | None = None,
                      note: str | None = None, scheduler: str | None = None, frames: int = 0,
+                     shift: str | None = None, primal: str = "base",
                      _stop_after: int | None = None,
                      _die_once: str | None = None) -> dict:
     """Render ``count`` procedural scenes of ``family`` (scene k uses seed ``seed + start + k`` and
@@ -60,7 +62,7 @@ def generate_dataset(family: str, count: int, out: str | os.PathLike, *, width: 
     ``workers`` (`data_gen.cluster`); the output is the same files. ``frames > 0`` renders each
     scene as a camera fly-through of that many frames (`data_gen.sequences.render_sequence`:
     ``scene_XXXX/frame_XXXX/``, every frame with ``instances`` noisy renders per spp and its own
-    reference)."""
+    reference). ``shift``/``primal``: the gradient frames' shift mapping and colour (`render_shot`)."""
     import json
 
     from jaxdenoise.fsutil import remove_stale_temporaries, write_json
@@ -87,7 +89,7 @@ def generate_dataset(family: str, count: int, out: str | os.PathLike, *, width: 
            "spp": list(spp), "instances": instances, "ref_spp": ref_spp, "max_depth": max_depth,
            "methods": list(methods) if methods is not None else None,
            "buffers": list(buffers) if buffers is not None else None, "command": command, "note": note,
-           "scheduler": scheduler, "frames": int(frames)}
+           "scheduler": scheduler, "frames": int(frames), "shift": shift, "primal": primal}
     run_id = f"{os.getpid()}-{time.time_ns()}"
     jobs = []
     for k in range(count):
@@ -99,7 +101,7 @@ def generate_dataset(family: str, count: int, out: str | os.PathLike, *, width: 
                      "buffers": list(buffers) if buffers is not None else None, "max_depth": max_depth,
                      "progress": progress and workers == 1 and scheduler is None,
                      "samples_per_pass": samples_per_pass, "_stop_after": _stop_after, "run_id": run_id,
-                     "frames": int(frames),
+                     "frames": int(frames), "shift": shift, "primal": primal,
                      "_die_once": _die_once})
     run["status"] = "running"
     manifest["runs"].append(run)  # recorded before rendering, so an interrupted run is listed too

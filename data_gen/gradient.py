@@ -39,13 +39,51 @@ import numpy as np
 
 from .integrator import PathSettings, derive_seed, trace
 from .mitsuba_setup import is_vectorized, setup_mitsuba
-from .render import DEFAULT_SAMPLES_PER_PASS, camera_ray
+from .gpt import NEIGHBOURS, ShiftSettings, trace_gpt
+from .render import DEFAULT_SAMPLES_PER_PASS, camera_ray, camera_samples
 from .scenes import load_scene
 
-__all__ = ["render_gradients", "trace_shifted", "OFFSETS"]
+__all__ = ["render_gradients", "trace_shifted", "trace_reconnect", "OFFSETS", "SHIFTS"]
 
 # Film offsets (pixels) of the three correlated traces: base, horizontal and vertical neighbour.
 OFFSETS: dict[str, tuple[int, int]] = {"base": (0, 0), "dx": (1, 0), "dy": (0, 1)}
+
+# The shift mappings: primary-sample-space replay (this module) and Kettunen's reconnection (`data_gen.gpt`).
+SHIFTS: tuple[str, ...] = ("replay", "reconnect")
+PRIMALS: tuple[str, ...] = ("base", "gpt")
+# The shift data_gen uses for dx, dy unless told otherwise (docs/results/data_gen_gradient.md).
+DEFAULT_SHIFT = "replay"
+
+
+def _wavefront(scene, *, seed: int, n: int, width: int, height: int):
+    """Sensor, seeded sampler, base pixel coordinates and film jitter of one pass (lane ``i`` is
+    sample ``i % n`` of base pixel ``i // n``); the jitter is the lane's first 2D sample."""
+    import drjit as dr
+    import mitsuba as mi
+
+    sensor = scene.sensors()[0]
+    sampler = mi.load_dict({"type": "independent"})
+    npix = int(width) * int(height)
+    sampler.seed(dr.opaque(mi.UInt32, int(seed)), npix * int(n))
+    idx = dr.arange(mi.UInt32, npix * int(n))
+    if n > 1:
+        idx = idx // dr.opaque(mi.UInt32, int(n))
+    py = idx // dr.opaque(mi.UInt32, int(width))
+    px = idx - py * int(width)
+    return sensor, sampler, px, py, sampler.next_2d()
+
+
+def _film_position(px, py, jitter, offset, width: int, height: int):
+    """[0, 1]^2 film position (over the film's crop window, as `sample_ray_differential` expects) of
+    the jittered pixel ``(px, py) + offset``. Opaque offsets keep the traced kernel identical for
+    every offset, so the LLVM backend compiles it once."""
+    import drjit as dr
+    import mitsuba as mi
+
+    pos_f = mi.Vector2f(mi.Float(px) + dr.opaque(mi.Float, float(offset[0])),
+                        mi.Float(py) + dr.opaque(mi.Float, float(offset[1])))
+    pos_f += jitter
+    return pos_f * dr.rcp(mi.ScalarVector2f(float(width), float(height)))
 
 
 def trace_shifted(scene, *, seed: int, offset: tuple[int, int], n: int, width: int, height: int,
@@ -62,28 +100,28 @@ def trace_shifted(scene, *, seed: int, offset: tuple[int, int], n: int, width: i
 
     Returns the Dr.Jit ``Spectrum`` (unevaluated) of ``width * height * n`` lanes.
     """
-    import drjit as dr
-    import mitsuba as mi
-
-    sensor = scene.sensors()[0]
-    sampler = mi.load_dict({"type": "independent"})
-    npix = int(width) * int(height)
-    sampler.seed(dr.opaque(mi.UInt32, int(seed)), npix * int(n))
-    idx = dr.arange(mi.UInt32, npix * int(n))
-    if n > 1:
-        idx = idx // dr.opaque(mi.UInt32, int(n))
-    py = idx // dr.opaque(mi.UInt32, int(width))
-    px = idx - py * int(width)
-    # Opaque offsets keep the traced kernel identical for the three traces, so the LLVM backend
-    # compiles it once and replays it from its cache.
-    pos_f = mi.Vector2f(mi.Float(px) + dr.opaque(mi.Float, float(offset[0])),
-                        mi.Float(py) + dr.opaque(mi.Float, float(offset[1])))
-    pos_f += sampler.next_2d()
-    # [0, 1]^2 spans the film's crop window (what `sample_ray_differential` expects).
-    pos_film = pos_f * dr.rcp(mi.ScalarVector2f(float(width), float(height)))
-    ray, weight = camera_ray(sensor, sampler, pos_film)
+    sensor, sampler, px, py, jitter = _wavefront(scene, seed=seed, n=n, width=width, height=height)
+    ray, weight = camera_ray(sensor, sampler, _film_position(px, py, jitter, offset, width, height))
     out = trace(scene, sampler, ray, True, settings=settings, record=frozenset())
     return out["color"] * weight
+
+
+def trace_reconnect(scene, *, seed: int, n: int, width: int, height: int, settings: PathSettings,
+                    shift: ShiftSettings):
+    """One wavefront of the reconnection shift (`data_gen.gpt.trace_gpt`): the base camera ray is the
+    one `trace_shifted` builds for offset (0, 0) (same samples, so the same base path); the four
+    offset rays go through the `NEIGHBOURS` with the same jitter and camera samples."""
+    sensor, sampler, px, py, jitter = _wavefront(scene, seed=seed, n=n, width=width, height=height)
+    cam = camera_samples(sensor, sampler)
+    ray, weight = camera_ray(sensor, None, _film_position(px, py, jitter, (0, 0), width, height), cam)
+    rays, weights = [], []
+    for off in NEIGHBOURS:
+        r, w = camera_ray(sensor, None, _film_position(px, py, jitter, off, width, height), cam)
+        rays.append(r)
+        weights.append(w)
+    out = trace_gpt(scene, sampler, ray, weight, rays, weights, settings=settings, shift=shift)
+    out["px"], out["py"] = px, py
+    return out
 
 
 def render_gradients(
@@ -96,8 +134,12 @@ def render_gradients(
     resolution: tuple[int, int] | None = None,
     samples_per_pass: int = DEFAULT_SAMPLES_PER_PASS,
     on_pass: Callable[[int], None] | None = None,
+    shift: str = "replay",
+    primal: str = "base",
+    roughness_threshold: float = ShiftSettings.roughness_threshold,
 ) -> dict[str, Any]:
-    """Base image and gradient-domain finite differences by primary-sample-space replay.
+    """Base image and gradient-domain finite differences, by primary-sample-space replay or by
+    Kettunen et al.'s reconnection shift (`data_gen.gpt`).
 
     Args:
         scene: a loaded ``mi.Scene``, a scene dict, or a path to a Mitsuba XML file. Its first
@@ -113,6 +155,14 @@ def render_gradients(
         samples_per_pass: most lanes (pixels x samples) per wavefront; a pass holds at least one
             sample of every pixel.
         on_pass: called after each pass with the number of samples per pixel it added.
+        shift: ``"replay"`` (three replayed paths per sample: base, right, lower neighbour) or
+            ``"reconnect"`` (G-PT: the base path and four offset paths, to every neighbour, combined
+            with MIS between the two ends of each pixel pair; docs/methods/gradient_domain.md).
+        primal: ``"base"`` (the plain path-traced image, bit-identical to `render_buffers`' colour
+            with the same seed) or ``"gpt"`` (reconnect only: Kettunen's primal, the mean over the
+            pixel's neighbour pairs of the MIS estimates from both ends; at the image border only
+            the pairs inside the image count).
+        roughness_threshold: reconnect only: `data_gen.gpt.ShiftSettings.roughness_threshold`.
 
     Returns:
         dict of float32 ``HWC`` arrays, 3 channels, linear radiance:
@@ -123,7 +173,18 @@ def render_gradients(
         would need pixels outside the image: they are 0. Also ``spp`` (int) and ``n_invalid``
         (int: lanes with a non-finite sample in any of the three traces; a non-finite base sample
         counts as 0 in ``primal``, a pair with a non-finite member as a difference of 0).
+        With ``shift="reconnect"``, ``dx``/``dy`` are the sums of the two ends' MIS-weighted
+        estimates (variances from the two ends' independent samples), ``n_invalid`` counts lanes
+        with a non-finite value (their gradient shares count as 0), and ``shift_stats`` gives the
+        fractions of offset paths that reconnected, went through a half-vector copy, and failed.
     """
+    if shift not in SHIFTS:
+        raise ValueError(f"shift: expected one of {SHIFTS}, got {shift!r}")
+    if primal not in PRIMALS:
+        raise ValueError(f"primal: expected one of {PRIMALS}, got {primal!r}")
+    if primal == "gpt" and shift != "reconnect":
+        raise ValueError("primal='gpt' needs shift='reconnect' (replay has no offset estimates of a pixel)")
+    shift_settings = ShiftSettings(roughness_threshold=roughness_threshold)
     if isinstance(spp, bool) or not isinstance(spp, (int, np.integer)) or spp < 1:
         raise ValueError(f"spp: expected a positive integer, got {spp!r}")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
@@ -160,59 +221,142 @@ def render_gradients(
 
     npix = width * height
     per_pass = max(1, min(int(spp), int(samples_per_pass) // npix))
-    sums = {k: np.zeros((npix, 3), np.float64) for k in ("base", "dx", "dy")}
-    sqs = {k: np.zeros((npix, 3), np.float64) for k in ("base", "dx", "dy")}
+    acc: dict[str, list[np.ndarray]] = {}
     n_invalid = 0
+    flag_counts = np.zeros(3, np.int64)
+
+    def add(values: dict, n: int) -> None:
+        # Per-pixel sums and sums of squares (float64 on the host) of per-lane values.
+        names = list(values)
+        red = [dr.block_sum(values[k][c], n) for k in names for c in range(3)]
+        red += [dr.block_sum(values[k][c] * values[k][c], n) for k in names for c in range(3)]
+        dr.eval(*red)
+        arrs = [np.asarray(a, dtype=np.float64) for a in red]
+        m = 3 * len(names)
+        for j, k in enumerate(names):
+            s, q = acc.setdefault(k, [np.zeros((npix, 3)), np.zeros((npix, 3))])
+            for c in range(3):
+                s[:, c] += arrs[3 * j + c]
+                q[:, c] += arrs[m + 3 * j + c]
+
+    def finite(v):
+        f = mi.Bool(True)
+        for c in range(3):
+            f &= dr.isfinite(v[c])
+        return f
+
     done, k = 0, 0
     while done < spp:
         n = min(per_pass, int(spp) - done)
         pseed = derive_seed(seed, "pass", k)  # the same pass seeds as data_gen.render
         kw = dict(seed=pseed, n=n, width=width, height=height, settings=settings)
-        base = trace_shifted(scene, offset=OFFSETS["base"], **kw)
-        dr.eval(base)
-        shx = trace_shifted(scene, offset=OFFSETS["dx"], **kw)
-        dr.eval(shx)
-        shy = trace_shifted(scene, offset=OFFSETS["dy"], **kw)
-        dr.eval(shy)
-        # Guard: a non-finite sample (a 0/0 in a BSDF or a degenerate frame) would poison its pixel
-        # and the differences it enters: a non-finite base sample is set to 0, and a pair with a
-        # non-finite member contributes a difference of 0. Lanes with any non-finite value are counted.
-        finite = []
-        for v in (base, shx, shy):
-            f = mi.Bool(True)
-            for c in range(3):
-                f &= dr.isfinite(v[c])
-            finite.append(f)
-        ok_b, ok_x, ok_y = finite[0], finite[0] & finite[1], finite[0] & finite[2]
-        n_invalid += int(dr.count(~(ok_x & ok_y))[0])
-        comps = {}
-        for c in range(3):
-            comps[("base", c)] = dr.select(ok_b, base[c], 0.0)
-            comps[("dx", c)] = dr.select(ok_x, shx[c] - base[c], 0.0)
-            comps[("dy", c)] = dr.select(ok_y, shy[c] - base[c], 0.0)
-        red = [dr.block_sum(v, n) for v in comps.values()] + [dr.block_sum(v * v, n) for v in comps.values()]
-        dr.eval(*red)
-        arrs = [np.asarray(a, dtype=np.float64) for a in red]
-        m = len(comps)
-        for j, (name, c) in enumerate(comps):
-            sums[name][:, c] += arrs[j]
-            sqs[name][:, c] += arrs[m + j]
-        del base, shx, shy, comps, red
+        if shift == "replay":
+            base = trace_shifted(scene, offset=OFFSETS["base"], **kw)
+            dr.eval(base)
+            shx = trace_shifted(scene, offset=OFFSETS["dx"], **kw)
+            dr.eval(shx)
+            shy = trace_shifted(scene, offset=OFFSETS["dy"], **kw)
+            dr.eval(shy)
+            # Guard: a non-finite sample (a 0/0 in a BSDF or a degenerate frame) would poison its
+            # pixel and the differences it enters: a non-finite base sample is set to 0, and a pair
+            # with a non-finite member contributes a difference of 0. Such lanes are counted.
+            ok_b = finite(base)
+            ok_x, ok_y = ok_b & finite(shx), ok_b & finite(shy)
+            n_invalid += int(dr.count(~(ok_x & ok_y))[0])
+            add({"base": dr.select(ok_b, base, 0.0), "dx": dr.select(ok_x, shx - base, 0.0),
+                 "dy": dr.select(ok_y, shy - base, 0.0)}, n)
+            del base, shx, shy
+        else:
+            out = trace_reconnect(scene, shift=shift_settings, **kw)
+            dr.eval(out)
+            ok_b = finite(out["color"])
+            ok_g = mi.Bool(ok_b)
+            for name in ("grad", "main", "shifted"):
+                for v in out[name]:
+                    ok_g &= finite(v)
+            n_invalid += int(dr.count(~ok_g)[0])
+            px, py = out["px"], out["py"]
+            vals = {"base": dr.select(ok_b, out["color"], 0.0)}
+            own = mi.Spectrum(0.0)
+            for j, (ox, oy) in enumerate(NEIGHBOURS):
+                # The pair (pixel, neighbour) exists only if the neighbour is inside the image.
+                inside = mi.Bool(True)
+                if ox > 0:
+                    inside &= px + ox < width
+                if ox < 0:
+                    inside &= px >= -ox
+                if oy > 0:
+                    inside &= py + oy < height
+                if oy < 0:
+                    inside &= py >= -oy
+                vals[f"g{j}"] = dr.select(ok_g, out["grad"][j], 0.0)
+                vals[f"s{j}"] = dr.select(ok_g, out["shifted"][j], 0.0)
+                own += dr.select(ok_g & inside, out["main"][j], 0.0)
+            vals["own"] = own
+            add(vals, n)
+            flags = np.asarray(out["flags"], dtype=np.uint32)
+            for b in range(3):
+                flag_counts[b] += sum(int(np.count_nonzero(flags & np.uint32(1 << (b + 3 * j))))
+                                      for j in range(len(NEIGHBOURS)))
+            del out, vals, own
         done += n
         k += 1
         if on_pass is not None:
             on_pass(n)
 
-    out: dict[str, Any] = {}
-    for name, key in (("base", "primal"), ("dx", "dx"), ("dy", "dy")):
-        s, q = sums[name], sqs[name]
-        mean = s / spp
+    def mean_var(name):
+        s, q = acc[name]
         # Unbiased sample variance / n (spp > 1 only). Guard: float64 cancellation in q - s^2/n can
         # leave tiny negatives where all samples are (nearly) equal, e.g. a perfectly correlated pair.
         var = np.maximum(q - s * s / spp, 0.0) / max(spp - 1, 1) / spp
-        out[key] = mean.reshape(height, width, 3).astype(np.float32)
-        if spp > 1:
-            out[key + "_var"] = var.reshape(height, width, 3).astype(np.float32)
+        return (s / spp).reshape(height, width, 3), var.reshape(height, width, 3)
+
+    out: dict[str, Any] = {}
+    if shift == "replay":
+        for name, key in (("base", "primal"), ("dx", "dx"), ("dy", "dy")):
+            out[key], out[key + "_var"] = mean_var(name)
+    else:
+        g = [mean_var(f"g{j}") for j in range(len(NEIGHBOURS))]
+        sh = [mean_var(f"s{j}") for j in range(len(NEIGHBOURS))]
+        # dx[y, x]: the right shifts of (x, y) plus the left shifts of (x+1, y), reversed in sign.
+        dx, dx_var = np.zeros((height, width, 3)), np.zeros((height, width, 3))
+        dx[:, :-1] = g[0][0][:, :-1] - g[2][0][:, 1:]
+        dx_var[:, :-1] = g[0][1][:, :-1] + g[2][1][:, 1:]
+        dy, dy_var = np.zeros((height, width, 3)), np.zeros((height, width, 3))
+        dy[:-1] = g[1][0][:-1] - g[3][0][1:]
+        dy_var[:-1] = g[1][1][:-1] + g[3][1][1:]
+        out.update(dx=dx, dx_var=dx_var, dy=dy, dy_var=dy_var)
+        if primal == "base":
+            out["primal"], out["primal_var"] = mean_var("base")
+        else:
+            # Pixel (x, y): its own MIS shares toward every neighbour inside the image, plus each such
+            # neighbour's shares shifted onto it, averaged over the pairs.
+            own, own_var = mean_var("own")
+            tot, tot_var = own.copy(), own_var.copy()
+            pairs = np.zeros((height, width, 1))
+            pairs[:, :-1] += 1  # right neighbour: its left shifts (s2) land here
+            tot[:, :-1] += sh[2][0][:, 1:]
+            tot_var[:, :-1] += sh[2][1][:, 1:]
+            pairs[:, 1:] += 1  # left neighbour: its right shifts (s0)
+            tot[:, 1:] += sh[0][0][:, :-1]
+            tot_var[:, 1:] += sh[0][1][:, :-1]
+            pairs[:-1] += 1  # lower neighbour: its up shifts (s3)
+            tot[:-1] += sh[3][0][1:]
+            tot_var[:-1] += sh[3][1][1:]
+            pairs[1:] += 1  # upper neighbour: its down shifts (s1)
+            tot[1:] += sh[1][0][:-1]
+            tot_var[1:] += sh[1][1][:-1]
+            pairs = np.maximum(pairs, 1)
+            out["primal"], out["primal_var"] = tot / pairs, tot_var / pairs ** 2
+        total = len(NEIGHBOURS) * npix * int(spp)
+        out["shift_stats"] = {"offset_paths": total, "reconnected": float(flag_counts[0] / total),
+                              "half_vector": float(flag_counts[1] / total), "failed": float(flag_counts[2] / total)}
+    for key in list(out):
+        if isinstance(out[key], np.ndarray):
+            out[key] = out[key].astype(np.float32)
+    if spp == 1:
+        for key in ("primal_var", "dx_var", "dy_var"):
+            out.pop(key, None)
     # Border convention: I[y, W] and I[H, x] lie outside the image, so these differences are 0.
     for key in ("dx", "dx_var"):
         if key in out:

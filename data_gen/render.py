@@ -77,10 +77,9 @@ def _sample_wavefront(scene, sensor, sampler, npix: int, n: int, width: int):
     return camera_ray(sensor, sampler, dr.fma(pos_f, scale, offset))
 
 
-def camera_ray(sensor, sampler, pos_film):
-    """Ray and weight through film position ``pos_film`` ([0, 1]^2 over the crop window), drawing
-    the remaining camera sample dimensions (aperture, time, wavelength) in this fixed order, which
-    `data_gen.gradient` relies on to replay the same samples."""
+def camera_samples(sensor, sampler):
+    """The camera sample dimensions after the film position (aperture, time, wavelength), drawn in
+    this fixed order, which `data_gen.gradient` relies on to replay the same samples."""
     import mitsuba as mi
 
     aperture = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Vector2f(0.5)
@@ -88,6 +87,16 @@ def camera_ray(sensor, sampler, pos_film):
     if sensor.shutter_open_time() > 0:
         t += sampler.next_1d() * sensor.shutter_open_time()
     wav = sampler.next_1d()
+    return aperture, t, wav
+
+
+def camera_ray(sensor, sampler, pos_film, samples=None):
+    """Ray and weight through film position ``pos_film`` ([0, 1]^2 over the crop window). The other
+    camera dimensions come from ``samples`` (a `camera_samples` result, so that several rays can
+    share them: the gradient-domain shifts) or are drawn from ``sampler``."""
+    import mitsuba as mi
+
+    aperture, t, wav = camera_samples(sensor, sampler) if samples is None else samples
     ray, weight = sensor.sample_ray_differential(time=t, sample1=wav, sample2=pos_film, sample3=aperture)
     return mi.Ray3f(ray), weight
 

@@ -25,9 +25,9 @@ from .scenes import describe, load_scene
 GRADIENT_FIELDS = ("dx", "dy")
 # What a gradient frame's ``seconds`` covers (written into its manifest entry).
 GRADIENT_TIME_NOTE = ("seconds = buffer render + gradient render (gradient_seconds), Dr.Jit compilation excluded "
-                      "(compile_seconds); the gradient render traces the base paths again (replayed, bit-identical "
-                      "to the colour) beside the two shifted traces, so about a third of gradient_seconds repeats "
-                      "work a combined tracer would share")
+                      "(compile_seconds); the gradient render traces the base paths again (bit-identical to the "
+                      "colour) beside the shifted paths (two replayed traces, or four offset paths of the "
+                      "reconnection shift), so part of gradient_seconds repeats work a combined tracer would share")
 SHOT_RECORD = "shot.json"
 INTEGRATOR_NAME = "data_gen.buffers"
 
@@ -152,14 +152,19 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
                 instances: int = 1, methods: Iterable[str] | None = None, buffers: Iterable[str] | None = None,
                 max_depth: int = 8, rr_depth: int = 5, seed: int = 0, progress: bool = True,
                 samples_per_pass: int = DEFAULT_SAMPLES_PER_PASS, width: int | None = None,
-                height: int | None = None, _stop_after: int | None = None) -> dict:
+                height: int | None = None, shift: str | None = None, primal: str = "base",
+                _stop_after: int | None = None) -> dict:
     """Render noisy frames at every ``spp`` (``instances`` independent realizations each) and a
     ``ref_spp`` reference into ``out_dir``; return the shot's manifest record (also in ``shot.json``).
 
     ``scene``: scene dict, XML path or loaded ``mi.Scene``. ``methods`` (registered names) or
     ``buffers`` (field names) choose what is written; both None = every buffer the scene can vary.
     ``ref_spp=0`` skips the reference. Finished files are skipped (resumable).
+    ``shift`` (``replay`` or ``reconnect``; None = `data_gen.gradient.DEFAULT_SHIFT`) and ``primal``
+    (``base`` or ``gpt``: the colour of gradient frames is then the G-PT primal) apply to frames with
+    gradient buffers (`data_gen.gradient.render_gradients`).
     """
+    from .gradient import DEFAULT_SHIFT, PRIMALS, SHIFTS
     from jaxdenoise.buffers import Buffers
     from jaxdenoise.fsutil import remove_stale_temporaries, write_json
     from jaxdenoise.io import write_buffers
@@ -173,6 +178,11 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
         raise ValueError(f"instances must be an int >= 1, got {instances!r}")
     if ref_spp and ref_spp < 2:
         raise ValueError(f"ref_spp must be 0 (no reference) or >= 2, got {ref_spp}")
+    shift = DEFAULT_SHIFT if shift is None else shift
+    if shift not in SHIFTS:
+        raise ValueError(f"shift: expected one of {SHIFTS}, got {shift!r}")
+    if primal not in PRIMALS or (primal == "gpt" and shift != "reconnect"):
+        raise ValueError(f"primal: expected 'base', or 'gpt' with shift='reconnect'; got {primal!r} (shift {shift!r})")
     settings = PathSettings(max_depth=int(max_depth), rr_depth=int(rr_depth))
     label = _scene_label(scene)
     loaded = load_scene(scene, width=width, height=height)
@@ -195,6 +205,8 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
         for i in range(instances):
             name = f"spp{s:04d}_{i:02d}.exr"
             key = dict(base_key, spp=s, instance=i, fields=fields)
+            if any(f in fields for f in GRADIENT_FIELDS):
+                key.update(shift=shift, primal=primal)
             jobs.append((name, key, s, i, fields))
     if ref_spp:
         jobs.append(("reference.exr", dict(base_key, spp=int(ref_spp), reference=True), int(ref_spp), None, ["color"]))
@@ -238,15 +250,18 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
                     data = render_buffers(loaded, spp=s, seed=fseed, settings=settings, record=record_feats,
                                           samples_per_pass=samples_per_pass, on_pass=tick)
                 seconds, compile_seconds = timer.seconds, timer.compile_seconds
-                grad_seconds = 0.0
+                grad_seconds, stats = 0.0, None
                 if any(f in fields for f in GRADIENT_FIELDS):
                     with RenderTimer() as timer:
-                        data.update(_gradients(loaded, s, fseed, settings, samples_per_pass))
+                        grads, stats = _gradients(loaded, s, fseed, settings, samples_per_pass, shift, primal)
+                        data.update(grads)
                     grad_seconds = timer.seconds
                     seconds += grad_seconds
                     compile_seconds += timer.compile_seconds
                 bufs = Buffers(**{f: data[f] for f in fields if f in data}, spp=s, **camera)
                 attrs = _attrs(base_key, s, inst, seconds)
+                if grad_seconds:
+                    attrs.update(gradient_shift=shift, primal=primal)
                 write_buffers(out_dir / name, bufs, attrs)
                 dsha = data_sha256({f: data[f] for f in fields if f in data})
                 key = dict(key)
@@ -255,6 +270,7 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
                                "fields": fields}
                 if grad_seconds:
                     files[name]["gradient_note"] = GRADIENT_TIME_NOTE
+                    files[name]["shift_stats"] = stats
             files.setdefault(name, {})
             files[name].update({"key": key, "sha256": sha256(out_dir / name), "data_sha256": dsha})
             if inst is None:
@@ -275,7 +291,8 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
     return rec
 
 
-def _gradients(scene, spp, seed, settings, samples_per_pass) -> dict:
+def _gradients(scene, spp, seed, settings, samples_per_pass, shift, primal) -> tuple[dict, dict | None]:
+    """dx, dy (and, with ``primal="gpt"``, the colour) of a gradient frame; the shift statistics."""
     try:
         from . import gradient
     except ImportError as exc:
@@ -283,9 +300,16 @@ def _gradients(scene, spp, seed, settings, samples_per_pass) -> dict:
             "gradient-domain buffers (dx, dy) were requested but data_gen.gradient is not available "
             f"({exc}); request methods/buffers without dx/dy") from None
     out = gradient.render_gradients(scene, spp=spp, seed=seed, max_depth=settings.max_depth,
-                                     rr_depth=settings.rr_depth, samples_per_pass=samples_per_pass)
+                                     rr_depth=settings.rr_depth, samples_per_pass=samples_per_pass,
+                                     shift=shift, primal=primal)
     # dx_var / dy_var have no channels in the EXR contract (jaxdenoise.buffers.CHANNELS): not written.
-    return {k: np.asarray(out[k], np.float32) for k in ("dx", "dy")}
+    data = {k: np.asarray(out[k], np.float32) for k in ("dx", "dy")}
+    if primal == "gpt":
+        data["color"] = np.asarray(out["primal"], np.float32)
+        if "primal_var" in out:
+            data["color_var"] = np.asarray(out["primal_var"], np.float32)
+    stats = dict(out.get("shift_stats") or {}, n_invalid=int(out["n_invalid"]))
+    return data, stats
 
 
 def _attrs(base_key: dict, spp: int, instance, seconds: float) -> dict:
