@@ -70,6 +70,7 @@ NOT_CONNECTED, RECENTLY_CONNECTED, CONNECTED, DEAD = 0, 1, 2, 3
 RECONNECTED, HALF_VECTOR, FAILED = 1, 2, 4
 
 _EPS = 1e-20
+_MIN_DIST2 = 1e-10  # squared distance (scene units) below which two vertices count as one
 _ONE_MINUS = 0.99999994  # largest float32 below 1: picks a BSDF's second (transmissive) delta lobe
 
 
@@ -233,7 +234,8 @@ def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, setti
             a_y = dr.select(front_y, a_y, 0.0)
             le_y = scene.eval_emitter_direction(si_y, ds_y, recon & front_y)
             occ_y = scene.ray_test(si_y.spawn_ray_to(ds_y.p), recon & front_y)
-            vis_y = recon & front_y & ~occ_y
+            # Guard: a light point on the offset vertex itself has no direction (0/0 Jacobian).
+            vis_y = recon & front_y & ~occ_y & (inf | point | (dist2_y > _MIN_DIST2)) & dr.isfinite(jac)
             val_y, pdf_y = bsdf_y.eval_pdf(ctx, si_y, si_y.to_local(ds_y.d), vis_y)
             b_y = dr.select(vis_y & ~ds_em.delta, pdf_y, 0.0)
             c_y_nc = dr.select(vis_y, o["beta"] * jac * val_y * le_y / a_x, 0.0)
@@ -317,7 +319,10 @@ def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, setti
             front_c = n_inf | (dr.dot(d_y, si_n.n) < 0.0)
             b_c = dr.select(n_inf, b_x,
                             dr.select(front_c, scene.pdf_emitter_direction(si_y, ds_c, recon_vis & front_c), 0.0))
-            recon_ok = recon_vis & (pdf_c > 0.0)
+            # Guard: an offset vertex on the base's next vertex (0 distance) has no incoming direction
+            # there; such a degenerate shift fails (and is counted).
+            recon_ok = (recon_vis & (pdf_c > 0.0) & (n_inf | (dist2_y > _MIN_DIST2)) & dr.isfinite(jac_c)
+                        & (jac_c > 0.0))
             fail |= recon & ~recon_ok
             # half-vector copy (or the same delta lobe)
             hv = notc & ~recon

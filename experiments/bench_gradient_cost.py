@@ -1,13 +1,20 @@
-"""Cost and quality of the gradient-domain buffers (issue 3, item 2 benchmark).
+"""Cost and quality of the gradient-domain buffers, replay vs reconnection shift (issue 16, item 4).
 
-For each scene: the time of `data_gen.gradient.render_gradients` (base + two replayed shifted paths
-per sample) against the plain colour render `data_gen.render.render_buffers` at the same spp and
-resolution (median of ``--runs`` runs after one warm-up each, same process, same scene object), and
-the variance of the replayed differences against that of the difference of two independent renders:
-the aggregate ratio sum(dx_var) / sum(var_a[x] + var_b[x+1]) and the median of the per-pixel ratio.
+For each scene and shift (`data_gen.gradient.render_gradients`, ``shift="replay"`` / ``"reconnect"``):
 
-    python experiments/bench_gradient_cost.py --size 128 --spp 16 --runs 5 \
-        --out docs/results/data_gen_gradient.md
+- time per sample relative to the plain colour render `data_gen.render.render_buffers` at the same
+  spp and resolution (medians of ``--runs`` runs after one warm-up each, same process);
+- the fractions of offset paths that reconnected, went through a half-vector copy, and failed
+  (reconnect only);
+- the variance of dx, dy against that of the difference of two independent renders: the aggregate
+  ratio sum(dx_var) / sum(var_a[x] + var_b[x+1]) and the median of the per-pixel ratio;
+- the RelMSE against a ``--ref-spp`` reference (independent seed) of the input (base image),
+  ``poisson-l2`` and ``poisson-l1`` at ``--spps`` samples per pixel, and of plain path tracing at
+  equal render time (``round(spp * time ratio)`` samples of the plain renderer). The solvers' own
+  time is reported beside (it is not part of "render time").
+
+    python experiments/bench_gradient_cost.py --size 128 --spp 16 --runs 5 --spps 4,16,64 \
+        --ref-spp 2048 --out docs/results/data_gen_gradient.md
 """
 from __future__ import annotations
 
@@ -24,30 +31,33 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from data_gen.gradient import render_gradients  # noqa: E402
+from data_gen.gradient import SHIFTS, render_gradients  # noqa: E402
 from data_gen.integrator import PathSettings  # noqa: E402
 from data_gen.mitsuba_setup import setup_mitsuba  # noqa: E402
 from data_gen.render import render_buffers  # noqa: E402
+from data_gen.scenes import build_scene, default_scene, load_scene  # noqa: E402
 from jaxdenoise.fsutil import write_json, write_text  # noqa: E402
 
 
 def scenes(size: int) -> dict:
-    """Mitsuba's built-in Cornell box, with its light seen directly, and the same box with the light
-    hidden from the camera by a crop of the view (only the lower 3/4 of the box is framed)."""
+    """Mitsuba's Cornell box (ceiling light in view), the demo scene (a rough-gold sphere: glossy),
+    a textured room lit indirectly (procedural ``rooms``), an outdoor scene under an environment
+    map seen through a thin lens (procedural ``envmap`` with the camera made a thin lens), and an
+    object set with plastic, rough conductor and glass (procedural ``objects``)."""
     import mitsuba as mi
 
     out = {}
     box = mi.cornell_box()
-    box["sensor"]["film"]["width"] = size
-    box["sensor"]["film"]["height"] = size
-    box["sensor"]["film"]["rfilter"] = {"type": "box"}
+    box["sensor"]["film"].update({"width": size, "height": size, "rfilter": {"type": "box"}})
     out["cornell-box"] = box
-    low = mi.cornell_box()
-    low["sensor"]["film"].update({"width": size, "height": size, "rfilter": {"type": "box"}})
-    # Look down a little and narrow the field of view so the ceiling light leaves the frame.
-    low["sensor"]["to_world"] = mi.ScalarTransform4f().look_at(origin=[0, 0, 3.9], target=[0, -0.35, 0], up=[0, 1, 0])
-    low["sensor"]["fov"] = 28.0
-    out["cornell-box-no-light-in-view"] = low
+    out["demo-glossy"] = default_scene(width=size, height=size)
+    out["textured-room"] = build_scene("rooms", 3, width=size, height=size)
+    outdoor = build_scene("envmap", 5, width=size, height=size)
+    outdoor["sensor"].update(type="thinlens", aperture_radius=0.08, focus_distance=4.0)
+    out["outdoor-dof"] = outdoor
+    out["objects-specular"] = build_scene("objects", 11, width=size, height=size)
+    for d in out.values():
+        d.pop("__family__", None)
     return out
 
 
@@ -61,67 +71,127 @@ def median_time(fn, runs: int) -> tuple[float, list[float]]:
     return statistics.median(ts), ts
 
 
+def relmse(x, ref) -> float:
+    return float(np.mean((np.asarray(x, np.float64) - ref) ** 2 / (ref ** 2 + 1e-2)))
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", type=int, default=128)
-    ap.add_argument("--spp", type=int, default=16)
+    ap.add_argument("--spp", type=int, default=16, help="spp of the timing and variance runs")
     ap.add_argument("--runs", type=int, default=5)
+    ap.add_argument("--spps", default="4,16,64", help="spp of the reconstruction comparison")
+    ap.add_argument("--ref-spp", type=int, default=2048)
+    ap.add_argument("--scenes", default=None, help="comma list (default: all)")
     ap.add_argument("--out", default="docs/results/data_gen_gradient.md")
     args = ap.parse_args(argv)
 
     variant = setup_mitsuba()
-    import mitsuba as mi
+    from jaxdenoise import methods
+    from jaxdenoise.buffers import Buffers
 
+    solvers = {n: methods.get(n) for n in ("poisson-l2", "poisson-l1")}
+    params = {n: m.init(None) for n, m in solvers.items()}
     settings = PathSettings()
+    spps = [int(s) for s in args.spps.split(",")]
     rows = []
-    for name, d in scenes(args.size).items():
-        scene = mi.load_dict(d)
+    t_start = time.perf_counter()
+    todo = scenes(args.size)
+    if args.scenes:
+        todo = {k: v for k, v in todo.items() if k in args.scenes.split(",")}
+    for name, d in todo.items():
+        scene = load_scene(d)
+        ref = render_buffers(scene, spp=args.ref_spp, seed=987654, settings=settings)["color"].astype(np.float64)
         t_plain, ts_plain = median_time(lambda: render_buffers(scene, spp=args.spp, seed=1, settings=settings), args.runs)
-        t_grad, ts_grad = median_time(lambda: render_gradients(scene, spp=args.spp, seed=1), args.runs)
-        a = render_gradients(scene, spp=args.spp, seed=2)
-        b = render_gradients(scene, spp=args.spp, seed=3)
-        ix = a["primal_var"][:, :-1] + b["primal_var"][:, 1:]
-        iy = a["primal_var"][:-1] + b["primal_var"][1:]
-        vx, vy = a["dx_var"][:, :-1], a["dy_var"][:-1]
-        mx, my = ix > 0, iy > 0
-        rows.append({
-            "scene": name, "size": args.size, "spp": args.spp,
-            "plain_s": t_plain, "gradient_s": t_grad, "ratio": t_grad / t_plain,
-            "plain_runs_s": ts_plain, "gradient_runs_s": ts_grad,
-            "var_ratio_dx": float(vx.sum() / ix.sum()), "var_ratio_dy": float(vy.sum() / iy.sum()),
-            "median_pixel_var_ratio_dx": float(np.median(vx[mx] / ix[mx])),
-            "median_pixel_var_ratio_dy": float(np.median(vy[my] / iy[my])),
-            "n_invalid": int(a["n_invalid"]),
-        })
-        print(json.dumps({k: v for k, v in rows[-1].items() if not k.endswith("runs_s")}), flush=True)
+        for shift in SHIFTS:
+            t_grad, ts_grad = median_time(lambda: render_gradients(scene, spp=args.spp, seed=1, shift=shift), args.runs)
+            ratio = t_grad / t_plain
+            a = render_gradients(scene, spp=args.spp, seed=2, shift=shift)
+            b = render_gradients(scene, spp=args.spp, seed=3, shift=shift)
+            ix = a["primal_var"][:, :-1] + b["primal_var"][:, 1:]
+            iy = a["primal_var"][:-1] + b["primal_var"][1:]
+            vx, vy = a["dx_var"][:, :-1], a["dy_var"][:-1]
+            mx, my = ix > 0, iy > 0
+            row = {
+                "scene": name, "shift": shift, "size": args.size, "spp": args.spp,
+                "plain_s": t_plain, "gradient_s": t_grad, "time_ratio": ratio,
+                "plain_runs_s": ts_plain, "gradient_runs_s": ts_grad,
+                "var_ratio_dx": float(vx.sum() / ix.sum()), "var_ratio_dy": float(vy.sum() / iy.sum()),
+                "median_pixel_var_ratio_dx": float(np.median(vx[mx] / ix[mx])),
+                "median_pixel_var_ratio_dy": float(np.median(vy[my] / iy[my])),
+                "shift_stats": a.get("shift_stats"), "n_invalid": int(a["n_invalid"]), "quality": [],
+            }
+            for s in spps:
+                g = render_gradients(scene, spp=s, seed=100 + s, shift=shift)
+                buf = Buffers(color=g["primal"], dx=g["dx"], dy=g["dy"], spp=s)
+                q = {"spp": s, "input": relmse(g["primal"], ref)}
+                for n, m in solvers.items():
+                    np.asarray(m.apply(params[n], buf))  # warm-up (compilation)
+                    t0 = time.perf_counter()
+                    rec = np.asarray(m.apply(params[n], buf))
+                    q[f"{n}_solve_s"] = time.perf_counter() - t0
+                    q[n] = relmse(rec, ref)
+                eq = max(1, int(round(s * ratio)))
+                q["equal_time_spp"] = eq
+                q["plain_equal_time"] = relmse(render_buffers(scene, spp=eq, seed=200 + s, settings=settings)["color"], ref)
+                row["quality"].append(q)
+            rows.append(row)
+            print(json.dumps({k: v for k, v in row.items() if not k.endswith("runs_s")}), flush=True)
 
     cmd = "python experiments/bench_gradient_cost.py " + " ".join(
-        f"--{k.replace('_', '-')} {v}" for k, v in vars(args).items())
+        f"--{k.replace('_', '-')} {v}" for k, v in vars(args).items() if v is not None)
+    load = os.getloadavg()
     lines = [
-        "## Gradient-domain buffers: cost and variance",
+        "## Gradient-domain buffers: replay vs reconnection shift, cost, variance, reconstruction",
         "",
-        f"Reproduce: `{cmd}`",
+        f"Reproduce: `{cmd}` ({time.perf_counter() - t_start:.0f} s).",
         "",
-        f"Mitsuba variant `{variant}`, {os.cpu_count()} CPU cores (shared with other jobs), "
-        f"{platform.machine()}; times are medians of {args.runs} runs after a warm-up, in one process.",
-        "`plain` = `data_gen.render.render_buffers` (colour only); `gradient` = "
-        "`data_gen.gradient.render_gradients` (base + 2 replayed shifted paths per sample, same spp).",
-        "Variance ratio = sum(dx_var) / sum(var_a[x] + var_b[x+1]) (two independent renders); "
-        "median ratio = the median over pixels of the same ratio per pixel.",
+        f"Mitsuba variant `{variant}`, {os.cpu_count()} CPU cores, {platform.machine()}, load average at the end "
+        f"{load[0]:.2f} / {load[1]:.2f} / {load[2]:.2f} (1/5/15 min); times are medians of {args.runs} runs after a "
+        f"warm-up, in one process, at {args.size}x{args.size} and {args.spp} spp.",
+        "`plain` = `render_buffers` (colour only); `gradient` = `render_gradients` (replay: base + 2 replayed "
+        "paths per sample; reconnect: base + 4 offset paths). Time ratio = gradient / plain at equal spp.",
+        "Variance ratio = sum(dx_var) / sum(var_a[x] + var_b[x+1]) (two independent plain renders); "
+        "median = the median over pixels of the per-pixel ratio. Fractions are of all offset paths "
+        "(4 per sample; an offset whose base path sees only the sky never reconnects).",
         "",
-        "| scene | size | spp | plain s | gradient s | time ratio | var ratio dx | var ratio dy | median px ratio dx | median px ratio dy |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| scene | shift | time ratio | var ratio dx / dy | median px ratio dx / dy | reconnected | half-vector | failed |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
+        st = r["shift_stats"] or {}
+        fr = (f"{st['reconnected']:.3f} | {st['half_vector']:.3f} | {st['failed']:.3f}" if st else "- | - | -")
         lines.append(
-            f"| {r['scene']} | {r['size']} | {r['spp']} | {r['plain_s']:.3f} | {r['gradient_s']:.3f} | "
-            f"{r['ratio']:.2f} | {r['var_ratio_dx']:.3f} | {r['var_ratio_dy']:.3f} | "
-            f"{r['median_pixel_var_ratio_dx']:.4f} | {r['median_pixel_var_ratio_dy']:.4f} |")
+            f"| {r['scene']} | {r['shift']} | {r['time_ratio']:.2f} | {r['var_ratio_dx']:.3f} / {r['var_ratio_dy']:.3f} | "
+            f"{r['median_pixel_var_ratio_dx']:.4f} / {r['median_pixel_var_ratio_dy']:.4f} | {fr} |")
+    lines += [
+        "",
+        f"RelMSE against a {args.ref_spp}-spp reference (independent seed). `input` = the base image at that "
+        "spp; `plain @ equal time` = plain path tracing with `round(spp x time ratio)` samples (the spp "
+        "in brackets), i.e. the same render time as the gradient render; solver seconds (after compilation) "
+        "are not counted in render time. **Bold**: poisson-l2 below the input at equal spp / poisson-l1 "
+        "below plain path tracing at equal time.",
+        "",
+        "| scene | shift | spp | input | poisson-l2 | poisson-l1 | plain @ equal time | l2 / l1 solve s |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        for q in r["quality"]:
+            l2 = f"{q['poisson-l2']:.4g}"
+            l1 = f"{q['poisson-l1']:.4g}"
+            if q["poisson-l2"] < q["input"]:
+                l2 = f"**{l2}**"
+            if q["poisson-l1"] < q["plain_equal_time"]:
+                l1 = f"**{l1}**"
+            lines.append(f"| {r['scene']} | {r['shift']} | {q['spp']} | {q['input']:.4g} | {l2} | {l1} | "
+                         f"{q['plain_equal_time']:.4g} ({q['equal_time_spp']}) | "
+                         f"{q['poisson-l2_solve_s']:.2f} / {q['poisson-l1_solve_s']:.2f} |")
     lines.append("")
     out = Path(args.out)
     write_text(out, "\n".join(lines))
-    write_json(out.with_suffix(".json"), {"config": vars(args), "variant": variant, "rows": rows})
-    print(f"bench_gradient_cost: {len(rows)} scenes, wrote {out}")
+    write_json(out.with_suffix(".json"), {"config": vars(args), "variant": variant, "rows": rows,
+                                          "load_average": load})
+    print(f"bench_gradient_cost: {len(rows)} rows, wrote {out}")
     return 0
 
 
