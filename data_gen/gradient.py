@@ -52,7 +52,7 @@ OFFSETS: dict[str, tuple[int, int]] = {"base": (0, 0), "dx": (1, 0), "dy": (0, 1
 SHIFTS: tuple[str, ...] = ("replay", "reconnect")
 PRIMALS: tuple[str, ...] = ("base", "gpt")
 # The shift data_gen uses for dx, dy unless told otherwise (docs/results/data_gen_gradient.md).
-DEFAULT_SHIFT = "replay"
+DEFAULT_SHIFT = "reconnect"
 
 
 def _wavefront(scene, *, seed: int, n: int, width: int, height: int):
@@ -134,7 +134,7 @@ def render_gradients(
     resolution: tuple[int, int] | None = None,
     samples_per_pass: int = DEFAULT_SAMPLES_PER_PASS,
     on_pass: Callable[[int], None] | None = None,
-    shift: str = "replay",
+    shift: str = DEFAULT_SHIFT,
     primal: str = "base",
     roughness_threshold: float = ShiftSettings.roughness_threshold,
 ) -> dict[str, Any]:
@@ -155,8 +155,8 @@ def render_gradients(
         samples_per_pass: most lanes (pixels x samples) per wavefront; a pass holds at least one
             sample of every pixel.
         on_pass: called after each pass with the number of samples per pixel it added.
-        shift: ``"replay"`` (three replayed paths per sample: base, right, lower neighbour) or
-            ``"reconnect"`` (G-PT: the base path and four offset paths, to every neighbour, combined
+        shift: ``"reconnect"`` (the default, `DEFAULT_SHIFT`) or ``"replay"`` (three replayed paths
+            per sample: base, right, lower neighbour); ``"reconnect"`` is G-PT: the base path and four offset paths, to every neighbour, combined
             with MIS between the two ends of each pixel pair; docs/methods/gradient_domain.md).
         primal: ``"base"`` (the plain path-traced image, bit-identical to `render_buffers`' colour
             with the same seed) or ``"gpt"`` (reconnect only: Kettunen's primal, the mean over the

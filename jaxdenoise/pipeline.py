@@ -227,6 +227,16 @@ def build_cache(data_dir: str | os.PathLike, fields: Sequence[str], cache_dir: s
     return Cache(folder)
 
 
+def _videos(frames: list[dict]) -> list[dict[int, list[int]]]:
+    """Sequences: (sequence folder, spp) -> frame indices in time order, one list per frame (the
+    render's noise instances, the other instances serving camera stops)."""
+    seq: dict[tuple, dict[int, list[int]]] = {}
+    for i, f in enumerate(frames):
+        if f["sequence"] is not None:
+            seq.setdefault((f["sequence"], f["spp"]), {}).setdefault(f["frame"], []).append(i)
+    return [{t: ids for t, ids in sorted(v.items())} for _, v in sorted(seq.items())]
+
+
 class Cache:
     """A decoded cache (`build_cache`): memory-mapped arrays and crop / sequence samplers."""
 
@@ -237,13 +247,16 @@ class Cache:
         self.frames: list[dict] = index["frames"]
         self.slices = _channels(self.fields)
         self._arrays: dict[str, np.ndarray] = {}
-        # sequences: (sequence folder, render name) -> frame indices in time order, one per frame
-        # (the render's noise instance), plus the other instances of each frame for camera stops
-        seq: dict[tuple, dict[int, list[int]]] = {}
-        for i, f in enumerate(self.frames):
-            if f["sequence"] is not None:
-                seq.setdefault((f["sequence"], f["spp"]), {}).setdefault(f["frame"], []).append(i)
-        self.videos = [{t: ids for t, ids in sorted(v.items())} for _, v in sorted(seq.items())]
+        self.videos = _videos(self.frames)
+
+    def subset(self, keep: Sequence[int]) -> "Cache":
+        """The same cache restricted to the renders ``keep`` (indices into ``frames``), e.g. without
+        the renders a method drops (GradNet's illegal patches)."""
+        out = Cache(self.folder)
+        out.frames = [self.frames[int(i)] for i in keep]
+        out._arrays = self._arrays
+        out.videos = _videos(out.frames)
+        return out
 
     def array(self, name: str) -> np.ndarray:
         if name not in self._arrays:

@@ -10,13 +10,19 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from data_gen.gradient import render_gradients
+from data_gen import gradient as _gradient
 from data_gen.integrator import PathSettings
 from data_gen.mitsuba_setup import setup_mitsuba
 from data_gen.render import render_buffers
 from data_gen.scenes import SceneError
 
 pytestmark = pytest.mark.mitsuba
+
+
+def render_gradients(*args, **kw):
+    """This file tests the replay shift (the reconnection shift has tests/test_gpt.py)."""
+    kw.setdefault("shift", "replay")
+    return _gradient.render_gradients(*args, **kw)
 
 RES = 16
 

@@ -33,6 +33,7 @@ _REGISTRY: dict[str, tuple[str, dict[str, Any]]] = {
     "poisson-l1": ("jaxdenoise.methods.poisson", {"norm": "l1"}),
     "demc": ("jaxdenoise.methods.demc", {}),
     "rae": ("jaxdenoise.methods.rae", {}),
+    "gradnet": ("jaxdenoise.methods.gradnet", {}),
 }
 
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"

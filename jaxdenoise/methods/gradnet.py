@@ -1,0 +1,458 @@
+"""GradNet: unsupervised deep screened-Poisson reconstruction of Guo, Li, Zhang, Xu 2019 ("GradNet:
+Unsupervised Deep Screened Poisson Reconstruction for Gradient-Domain Rendering"), registered as
+``gradnet``.
+
+Inputs (Sec. 4.1, 5.1): the noisy base image ``I_b`` (``color``), the gradients ``dx``, ``dy``
+(data_gen's convention ``I[x+1] - I[x]``), and the features albedo, normal mapped by ``(N + 1)/2``,
+depth scaled linearly to [0, 1] (divided by the frame's largest finite depth): 7 feature channels.
+HDR images enter through the mu-law of Eq. 6 (mu = 16, sign-preserving on the gradients:
+`jaxdenoise.color.mu_law`) and the output leaves through its inverse.
+
+Network (Sec. 4.4, Fig. 4):
+
+- a **data branch** on ``T(I_b)`` and the features (10 channels) and a **gradient branch** on
+  ``T(dx), T(dy)`` (6 channels), each three 3x3 stride-2 convolutions with the channels doubling
+  (``Config.widths``, ours);
+- their outputs concatenated and fed to **4 residual blocks** (two 3x3 convs, a leaky ReLU between
+  them, a residual connection);
+- a **decoder** of 4x4 stride-2 deconvolutions with the **dual skip connections** of Eq. 12: level
+  ``l`` deconvolves the concatenation of the previous decoder tensor and the data- and
+  gradient-branch tensors of the same resolution; three deconvolutions bring the 1/8 resolution back
+  to full resolution, the last one to 3 channels without activation;
+- the output is *added* to ``T(I_b)`` (ours: Fig. 4 draws ``I_b`` and a ``+`` at the output; a
+  residual to the base image also starts training from the base, docs/methods/gradnet.md);
+- a **G-branch** of three 3x3 convs on the data-branch input producing, per pixel, the 7 x 3
+  first-order derivatives ``G`` used by L_1st (input and width ours), the last without activation;
+- leaky ReLU slope 0.01 everywhere else; He initialisation (Sec. 5.2).
+
+Losses (Sec. 4.3), all unsupervised (no reference is read), all in the mu-law domain: ``L_data``
+(Eq. 8), ``L_grad`` (Eq. 9), ``L_1st`` (Eq. 10: 4-neighbourhood, ``w_ij = exp(-|T(I_b,i) -
+T(I_b,j)|^2 / (2 sigma_b^2))``, sigma_b^2 = 1/18, ``I_b`` mu-law compressed: our reading,
+docs/methods/gradnet.md), and the G-branch's Eq. 11 on the base image; ``L_all = L_grad +
+alpha L_data + lambda L_1st`` with alpha = 1 and the lambda schedule of Eq. 14 restated in steps.
+The autoencoder and the G-branch are separate parameter groups updated in alternation by the
+trainer (step t updates group t mod 2). Post-processing (Sec. 4.5, Eq. 13):
+``I <- (I_b * k) / (I * k) . I`` with a Gaussian ``k`` (radius 45, sigma 15), on by default.
+Any input size (padded to a multiple of 8 and cropped back).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import nn
+from ..buffers import Buffers
+from ..color import inv_log_transform, inv_mu_law, log_transform, mu_law
+
+__all__ = ["Config", "needs", "init", "apply", "forward", "loss", "loss_terms", "make_dataset", "batch",
+           "param_groups", "group_train", "inputs", "predict", "g_branch", "features", "postprocess", "lambda_at", "first_order_weights",
+           "num_params", "illegal_frames", "TRAIN", "WEIGHTS", "FEATURES"]
+
+FEATURES: tuple[str, ...] = ("albedo", "normal", "depth")  # 3 + 3 + 1 = 7 channels (Sec. 4.3.3)
+N_FEAT = 7
+STRIDE = 8  # three stride-2 convolutions
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """GradNet hyperparameters; paper values cited, our choices marked (docs/methods/gradnet.md)."""
+
+    widths: tuple[int, ...] = (24, 48, 96)  # channels of the three stride-2 convs per branch (ours)
+    res_blocks: int = 4  # Sec. 4.4
+    g_width: int = 32  # the G-branch's hidden width (ours)
+    slope: float = 0.01  # leaky ReLU (Sec. 4.4)
+    mu: float = 16.0  # Eq. 6 (Sec. 4.2)
+    compression: str = "mu-law"  # "mu-law" (Eq. 6) or "log" (log(1 + |I|): the Fig. 17 comparison)
+    first_order: bool = True  # False: L_data + L_grad only (the Fig. 12 ablation)
+    alpha: float = 1.0  # Eq. 7 (Sec. 5.2)
+    sigma_b2: float = 1.0 / 18.0  # w_ij bandwidth (Sec. 4.3.3)
+    lambda_start: float = 0.1  # Eq. 14
+    lambda_growth: float = 1.1  # Eq. 14
+    lambda_max: float = 2.0  # Eq. 14
+    lambda_epochs: int = 5  # Eq. 14: lambda = 0 up to this epoch
+    residual_output: bool = True  # output = T(I_b) + decoder (ours, docs/methods/gradnet.md)
+    postprocess: bool = True  # Eq. 13 (Sec. 4.5); off for the ablation
+    pp_radius: int = 45  # Sec. 4.5
+    pp_sigma: float = 15.0  # Sec. 4.5
+    # Training (Sec. 5.1-5.2, restated for this machine; docs/methods/gradnet.md):
+    train_spps: tuple[int, ...] = (64,)  # the paper's 64-spp G-PT renders
+    train_crop: int = 128  # the paper's patches are 256x256 (out of reach here)
+    train_batch: int = 8  # the paper's 32 (out of reach on 2 CPU cores)
+    epoch_patches: int = 256  # patches per "epoch" (the paper: 11,785); sets Eq. 14 and the lr decay
+
+    def __post_init__(self) -> None:
+        if len(self.widths) != 3 or any(int(w) < 1 for w in self.widths):
+            raise ValueError(f"gradnet: config.widths must be 3 positive ints (three stride-2 convs), got {self.widths}")
+        if self.compression not in ("mu-law", "log"):
+            raise ValueError(f"gradnet: config.compression must be 'mu-law' or 'log', got {self.compression!r}")
+        for name in ("mu", "sigma_b2", "pp_sigma", "epoch_patches", "train_batch", "train_crop"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"gradnet: config.{name} must be > 0, got {getattr(self, name)!r}")
+
+
+def _epoch_steps(config: Config) -> int:
+    """Trainer steps per epoch: each epoch is ``epoch_patches`` patches for the autoencoder, and the
+    trainer alternates it with the G-branch (two steps per autoencoder batch)."""
+    return max(1, 2 * int(math.ceil(config.epoch_patches / config.train_batch)))
+
+
+# Adam beta1 0.5, beta2 0.999, lr 1e-4 x 0.95 every other epoch (Sec. 5.2); the schedule counts each
+# group's own updates (one per autoencoder batch), so "every other epoch" is 2 x epoch_patches / batch.
+TRAIN: dict[str, Any] = {"optimizer": "adam", "learning_rate": 1e-4, "adam_b1": 0.5, "adam_b2": 0.999,
+                         "schedule": "step", "schedule_every": 64, "schedule_factor": 0.95, "steps": 4000,
+                         "checkpoint_every": 100}
+WEIGHTS = "gradnet"
+
+
+def param_groups(config: Config) -> dict:
+    """The autoencoder and the G-branch, trained in alternation (Sec. 5.2)."""
+    return {"autoencoder": ("data", "grad", "res", "dec"), "gbranch": ("gbranch",)}
+
+
+def group_train(config: Config) -> dict:
+    """The lr decay of Sec. 5.2 in each group's own update count: x0.95 every other epoch."""
+    every = max(1, _epoch_steps(config))  # two epochs of one group's updates = one epoch of trainer steps x 2 / 2
+    return {g: {"schedule_every": every} for g in ("autoencoder", "gbranch")}
+
+
+def needs(config: Config) -> frozenset[str]:
+    return frozenset({"color", "dx", "dy", *FEATURES})
+
+
+# -- inputs ----------------------------------------------------------------------------------------
+
+def compress(x: jax.Array, config: Config) -> jax.Array:
+    """The range compressor T (Eq. 6, sign-preserving)."""
+    return mu_law(x, config.mu) if config.compression == "mu-law" else log_transform(x)
+
+
+def decompress(y: jax.Array, config: Config) -> jax.Array:
+    return inv_mu_law(y, config.mu) if config.compression == "mu-law" else inv_log_transform(y)
+
+
+def _clean(x: jax.Array) -> jax.Array:
+    return jnp.where(jnp.isfinite(x), x, 0.0)
+
+
+def features(albedo: jax.Array, normal: jax.Array, depth: jax.Array) -> jax.Array:
+    """The 7 feature channels in [0, 1] (Sec. 5.1): albedo, ``(N + 1) / 2``, depth divided by the
+    frame's largest finite depth (per frame: any leading axes)."""
+    albedo = jnp.clip(_clean(albedo), 0.0, None)
+    normal = (jnp.clip(_clean(normal), -1.0, 1.0) + 1.0) * 0.5
+    depth = jnp.maximum(_clean(depth), 0.0)
+    dmax = jnp.max(depth, axis=(-3, -2, -1), keepdims=True)
+    depth = depth / jnp.maximum(dmax, 1e-12)
+    return jnp.concatenate([albedo, normal, depth], -1)
+
+
+def inputs(buffers: Any, config: Config) -> dict:
+    """Compressed inputs of a `Buffers` or a batch dict: ``tb`` = T(I_b) (negative and non-finite
+    radiance clamped to 0 first), ``tdx``, ``tdy`` = T(dx), T(dy) (sign-preserving), ``feat`` (7),
+    and the HDR ``base``/``dx``/``dy`` the losses compare against."""
+    get = (lambda f: getattr(buffers, f)) if isinstance(buffers, Buffers) else (lambda f: buffers[f])
+    base = jnp.maximum(_clean(jnp.asarray(get("color"), jnp.float32)), 0.0)
+    dx = _clean(jnp.asarray(get("dx"), jnp.float32))
+    dy = _clean(jnp.asarray(get("dy"), jnp.float32))
+    feat = features(*(jnp.asarray(get(f), jnp.float32) for f in FEATURES))
+    return {"base": base, "dx": dx, "dy": dy, "feat": feat, "tb": compress(base, config),
+            "tdx": compress(dx, config), "tdy": compress(dy, config)}
+
+
+# -- network ---------------------------------------------------------------------------------------
+
+def _act(config: Config):
+    return nn.LeakyRelu(config.slope)
+
+
+def _he(config: Config):
+    return nn.he_normal_init(2.0 / (1.0 + config.slope ** 2))
+
+
+def _layers(config: Config) -> dict:
+    w = [int(v) for v in config.widths]
+    he = _he(config)
+
+    def down(c):
+        return nn.serial(nn.Conv(c, 3, stride=2, w_init=he), _act(config))
+
+    cat = 2 * w[2]
+    res = nn.residual(nn.serial(nn.Conv(cat, 3, w_init=he), _act(config), nn.Conv(cat, 3, w_init=he)))
+    return {
+        "data": [down(c) for c in w],
+        "grad": [down(c) for c in w],
+        "res": [nn.serial(res, _act(config)) for _ in range(config.res_blocks)],
+        "dec": [nn.serial(nn.ConvTranspose(w[1], 4, stride=2, w_init=he), _act(config)),
+                nn.serial(nn.ConvTranspose(w[0], 4, stride=2, w_init=he), _act(config)),
+                nn.ConvTranspose(3, 4, stride=2, w_init=he)],
+        "gbranch": nn.serial(nn.Conv(config.g_width, 3, w_init=he), _act(config),
+                             nn.Conv(config.g_width, 3, w_init=he), _act(config),
+                             nn.Conv(N_FEAT * 3, 3, w_init=he)),
+    }
+
+
+def init(key, config: Config) -> dict:
+    L = _layers(config)
+    w = [int(v) for v in config.widths]
+    keys = iter(jax.random.split(key, 16 + config.res_blocks))
+    s = 32
+    params: dict = {"data": {}, "grad": {}, "res": {}, "dec": {}}
+    cd, cg = 3 + N_FEAT, 6
+    for i in range(3):
+        params["data"][str(i)] = L["data"][i][0](next(keys), (-1, s, s, cd))[1]
+        params["grad"][str(i)] = L["grad"][i][0](next(keys), (-1, s, s, cg))[1]
+        cd = cg = w[i]
+        s //= 2
+    for i in range(config.res_blocks):
+        params["res"][str(i)] = L["res"][i][0](next(keys), (-1, 4, 4, 2 * w[2]))[1]
+    cins = (2 * w[2] + 2 * w[2], w[1] + 2 * w[1], w[0] + 2 * w[0])  # Eq. 12: decoder + both branches
+    for i in range(3):
+        params["dec"][str(i)] = L["dec"][i][0](next(keys), (-1, 4, 4, cins[i]))[1]
+    params["gbranch"] = L["gbranch"][0](next(keys), (-1, 8, 8, 3 + N_FEAT))[1]
+    return params
+
+
+def num_params(config: Config) -> int:
+    shapes = jax.eval_shape(lambda k: init(k, config), jax.random.PRNGKey(0))
+    return int(sum(np.prod(s.shape) for s in jax.tree_util.tree_leaves(shapes)))
+
+
+def forward(params: dict, x: dict, config: Config) -> jax.Array:
+    """The autoencoder on prepared inputs (`inputs`, H and W multiples of 8): the output image in the
+    mu-law domain."""
+    L = _layers(config)
+    hd = jnp.concatenate([x["tb"], x["feat"]], -1)
+    hg = jnp.concatenate([x["tdx"], x["tdy"]], -1)
+    skips_d, skips_g = [], []
+    for i in range(3):
+        hd = L["data"][i][1](params["data"][str(i)], hd)
+        hg = L["grad"][i][1](params["grad"][str(i)], hg)
+        skips_d.append(hd)
+        skips_g.append(hg)
+    h = jnp.concatenate([hd, hg], -1)
+    for i in range(config.res_blocks):
+        h = L["res"][i][1](params["res"][str(i)], h)
+    for i in range(3):  # Eq. 12: Deconv(h_{l-1} + h_ED + h_EG) at the resolution of h_{l-1}
+        lvl = 2 - i
+        h = L["dec"][i][1](params["dec"][str(i)], jnp.concatenate([h, skips_d[lvl], skips_g[lvl]], -1))
+    return x["tb"] + h if config.residual_output else h
+
+
+def g_branch(params: dict, x: dict, config: Config) -> jax.Array:
+    """Per-pixel first-order derivatives ``G``: ``(..., H, W, 7, 3)``."""
+    g = _layers(config)["gbranch"][1](params["gbranch"], jnp.concatenate([x["tb"], x["feat"]], -1))
+    return g.reshape(g.shape[:-1] + (N_FEAT, 3))
+
+
+def predict(params: dict, buffers: Any, config: Config) -> tuple[jax.Array, jax.Array, dict]:
+    """``(T(I_hat), G, inputs)`` at the frame's own size (padded to a multiple of 8 for the network
+    and cropped back)."""
+    xp, size = _padded(buffers, config)
+    x = inputs(buffers, config)
+    y = nn.crop_to(forward(params, xp, config), size)
+    g = g_branch(params, xp, config)
+    g = nn.crop_to(g.reshape(g.shape[:-2] + (N_FEAT * 3,)), size)
+    return y, g.reshape(g.shape[:-1] + (N_FEAT, 3)), x
+
+
+def _padded(buffers, config):
+    x = inputs(buffers, config)
+    size = x["base"].shape[-3:-1]
+    return {k: nn.pad_to_multiple(v, STRIDE)[0] for k, v in x.items()}, size
+
+
+def _gauss_taps(config: Config) -> np.ndarray:
+    r = int(config.pp_radius)
+    t = np.arange(-r, r + 1, dtype=np.float64)
+    k = np.exp(-0.5 * (t / config.pp_sigma) ** 2)
+    return (k / k.sum()).astype(np.float32)
+
+
+def _blur(x: jax.Array, taps: np.ndarray) -> jax.Array:
+    """Separable zero-padded Gaussian over the two image axes of ``(..., H, W, C)``."""
+    k = jnp.asarray(taps)
+    r = (len(taps) - 1) // 2
+    lead = x.shape[:-3]
+    h, w, c = x.shape[-3:]
+    y = x.reshape((-1, h, w, c))
+    y = jnp.moveaxis(y, -1, 1).reshape((-1, 1, h, w))  # (N*C, 1, H, W)
+    kh = k.reshape(1, 1, -1, 1)
+    kw = k.reshape(1, 1, 1, -1)
+    dn = ("NCHW", "OIHW", "NCHW")
+    y = jax.lax.conv_general_dilated(y, kh, (1, 1), ((r, r), (0, 0)), dimension_numbers=dn)
+    y = jax.lax.conv_general_dilated(y, kw, (1, 1), ((0, 0), (r, r)), dimension_numbers=dn)
+    y = jnp.moveaxis(y.reshape((-1, c, h, w)), 1, -1)
+    return y.reshape(lead + (h, w, c))
+
+
+def postprocess(out: jax.Array, base: jax.Array, config: Config) -> jax.Array:
+    """Eq. 13: ``out <- (base * k) / (out * k) . out``, per channel, with the Gaussian ``k`` of
+    Sec. 4.5 (zero padding: the same kernel mass on both sides of the ratio). Guard: where
+    ``out * k`` is below 1e-6 times its channel's mean (or non-finite), ``out`` is kept."""
+    taps = _gauss_taps(config)
+    num = _blur(base, taps)
+    den = _blur(out, taps)
+    floor = 1e-6 * jnp.mean(jnp.abs(den), axis=(-3, -2), keepdims=True) + 1e-12
+    ratio = num / jnp.where(den > floor, den, 1.0)
+    ok = (den > floor) & jnp.isfinite(ratio)
+    return jnp.where(ok, ratio * out, out)
+
+
+def _run(params: dict, buffers: Any, config: Config, post: bool) -> jax.Array:
+    x, size = _padded(buffers, config)
+    y = nn.crop_to(forward(params, x, config), size)
+    out = jnp.maximum(decompress(y, config), 0.0)
+    if post:
+        base = nn.crop_to(x["base"], size)
+        out = postprocess(out, base, config)
+    return out
+
+
+def apply(params: dict, buffers: Buffers, config: Config) -> jax.Array:
+    """Reconstruct one frame or a batch (leading axes): HDR ``(..., H, W, 3)``."""
+    return _run(params, buffers, config, config.postprocess)
+
+
+# -- losses (Sec. 4.3) -----------------------------------------------------------------------------
+
+def _neighbours():
+    # (axis, shift): the right, left, lower and upper neighbour of every pixel.
+    return ((-2, 1), (-2, -1), (-3, 1), (-3, -1))
+
+
+def _shifted(a: jax.Array, axis: int, s: int) -> tuple[jax.Array, jax.Array]:
+    """``(a_j, a_i)`` for the pairs (i, j = i + s along ``axis``) inside the image."""
+    n = a.shape[axis]
+    take = lambda lo, hi: jax.lax.slice_in_dim(a, lo, hi, axis=axis)  # noqa: E731
+    return (take(1, n), take(0, n - 1)) if s > 0 else (take(0, n - 1), take(1, n))
+
+
+def first_order_weights(tb: jax.Array, config: Config) -> list[jax.Array]:
+    """``w_ij = exp(-|T(I_b,i) - T(I_b,j)|^2 / (2 sigma_b^2))`` (squared L2 over the colour channels)
+    for the 4 neighbour directions of `_neighbours` (each ``(..., H', W', 1)``)."""
+    out = []
+    for axis, s in _neighbours():
+        bj, bi = _shifted(tb, axis, s)
+        out.append(jnp.exp(-jnp.sum(jnp.square(bi - bj), -1, keepdims=True) / (2.0 * config.sigma_b2)))
+    return out
+
+
+def _first_order(t_img: jax.Array, G: jax.Array, feat: jax.Array, w: list[jax.Array]) -> jax.Array:
+    """Eq. 10 / 11: ``1/(N |N_i|) sum_i sum_j w_ij |T_j - T_i - G_i^T (F_j - F_i)|_1`` over the pairs
+    inside the image."""
+    total, count = 0.0, 0
+    for (axis, s), wij in zip(_neighbours(), w):
+        tj, ti = _shifted(t_img, axis, s)
+        fj, fi = _shifted(feat, axis, s)
+        _, Gi = _shifted(G.reshape(G.shape[:-2] + (N_FEAT * 3,)), axis, s)
+        pred = jnp.einsum("...fc,...f->...c", Gi.reshape(Gi.shape[:-1] + (N_FEAT, 3)), fj - fi)
+        total = total + jnp.sum(wij * jnp.sum(jnp.abs(tj - ti - pred), -1, keepdims=True))
+        count += int(np.prod(wij.shape))
+    return total / count
+
+
+def _grad_loss(out_hdr: jax.Array, x: dict, config: Config) -> jax.Array:
+    """Eq. 9: ``|T(grad_x I) - T(I_dx)| + |T(grad_y I) - T(I_dy)|`` per pixel (L1 over the colour
+    channels), averaged; HDR forward differences, the last column / row (no neighbour) excluded."""
+    gx = out_hdr[..., :, 1:, :] - out_hdr[..., :, :-1, :]
+    gy = out_hdr[..., 1:, :, :] - out_hdr[..., :-1, :, :]
+    lx = jnp.abs(compress(gx, config) - x["tdx"][..., :, :-1, :]).sum(-1).mean()
+    ly = jnp.abs(compress(gy, config) - x["tdy"][..., :-1, :, :]).sum(-1).mean()
+    return lx + ly
+
+
+def lambda_at(step: Any, config: Config) -> float:
+    """Eq. 14 in trainer steps: epoch = 1 + (autoencoder patches seen) // ``epoch_patches``;
+    lambda = 0 up to epoch 5, then ``min(0.1 * 1.1 ** (epoch - 5), 2)``."""
+    epoch = 1 + int(step) // _epoch_steps(config)
+    if epoch <= config.lambda_epochs:
+        return 0.0
+    k = epoch - config.lambda_epochs
+    if k * math.log(config.lambda_growth) >= math.log(config.lambda_max / config.lambda_start):
+        return float(config.lambda_max)  # (also keeps growth ** k from overflowing)
+    return float(min(config.lambda_start * config.lambda_growth ** k, config.lambda_max))
+
+
+def loss_terms(params: dict, batch: dict, config: Config) -> dict:
+    """Every term on a batch (no reference read): ``data`` (Eq. 8), ``grad`` (Eq. 9), ``first``
+    (Eq. 10, with ``G`` from the G-branch held fixed), ``g_branch`` (Eq. 11)."""
+    y, G, x = predict(params, batch, config)
+    out_hdr = decompress(y, config)
+    w = first_order_weights(x["tb"], config)
+    return {
+        "data": jnp.abs(y - x["tb"]).sum(-1).mean(),
+        "grad": _grad_loss(out_hdr, x, config),
+        "first": _first_order(y, jax.lax.stop_gradient(G), x["feat"], w),
+        "g_branch": _first_order(x["tb"], G, x["feat"], w),
+    }
+
+
+def loss(params: dict, batch: dict, config: Config, group: str | None = None):
+    """``L_all = L_grad + alpha L_data + lambda L_1st`` (Eq. 7) for the autoencoder, Eq. 11 for the
+    G-branch; ``lambda`` comes with the batch (`batch`: Eq. 14 of the step). ``group=None`` gives
+    their sum (for reporting)."""
+    lam = jnp.asarray(batch.get("lambda", 0.0), jnp.float32)
+    if group == "gbranch":
+        xp, size = _padded(batch, config)
+        x = inputs(batch, config)
+        g = g_branch(params, xp, config)
+        g = nn.crop_to(g.reshape(g.shape[:-2] + (N_FEAT * 3,)), size)
+        return _first_order(x["tb"], g.reshape(g.shape[:-1] + (N_FEAT, 3)), x["feat"], first_order_weights(x["tb"], config))
+    t = loss_terms(params, batch, config)
+    l_all = t["grad"] + config.alpha * t["data"] + (lam * t["first"] if config.first_order else 0.0)
+    if group == "autoencoder":
+        return l_all
+    if group is not None:
+        raise ValueError(f"gradnet: unknown parameter group {group!r}; expected 'autoencoder' or 'gbranch'")
+    return l_all + t["g_branch"]
+
+
+# -- training data ---------------------------------------------------------------------------------
+
+def illegal_frames(dataset) -> list[int]:
+    """Indices of the dataset's renders with an illegal value: NaN/Inf anywhere in the fields GradNet
+    reads, or negative base radiance (gradients are signed) (Sec. 5.1, footnote 1)."""
+    bad = []
+    fields = ["color", "dx", "dy", *FEATURES]
+    for i in range(len(dataset.frames)):
+        a = np.asarray(dataset.array(dataset.frames[i]["array"]))
+        sl = dataset.slices
+        vals = np.concatenate([a[..., sl[f]] for f in fields], -1)
+        if not np.all(np.isfinite(vals)) or np.any(a[..., sl["color"]] < 0):
+            bad.append(i)
+    return bad
+
+
+def make_dataset(data_dir, config: Config, *, progress: bool = True):
+    """The gradient-domain training renders at ``train_spps`` (a data_gen folder, decoded once into
+    the pipeline cache), without the renders that hold an illegal value (`illegal_frames`: dropped
+    and counted, ``dataset.dropped``). The references the folder contract carries are never read."""
+    from ..pipeline import open_training_data
+
+    ds = open_training_data(data_dir, ("dx", "dy", *FEATURES), spps=config.train_spps, progress=progress)
+    if not hasattr(ds, "subset"):
+        raise ValueError(f"{data_dir}: gradnet trains from a data_gen folder (the export lacks a per-render scan)")
+    pool = [i for i, f in enumerate(ds.frames) if f["spp"] in set(config.train_spps)]
+    bad = set(illegal_frames(ds))
+    keep = [i for i in pool if i not in bad]
+    if not keep:
+        raise ValueError(f"{data_dir}: every one of {len(pool)} renders at spp {list(config.train_spps)} has an "
+                         "illegal value (NaN/Inf or negative radiance)")
+    out = ds.subset(keep)
+    out.dropped = {"renders": len(pool), "dropped": len(pool) - len(keep)}
+    if progress:
+        print(f"gradnet: {len(keep)} training renders, {len(pool) - len(keep)} dropped for illegal values")
+    return out
+
+
+def batch(dataset, step: int, config: Config, rng: np.random.Generator) -> dict:
+    """``train_batch`` random ``train_crop`` crops (quarter turns, mirror, colour modulation: the
+    pipeline's augmentations keep dx, dy consistent), without the reference, and Eq. 14's lambda."""
+    b = dataset.crops(config.train_batch, config.train_crop, rng, spps=config.train_spps)
+    out = {k: b[k] for k in ("color", "dx", "dy", *FEATURES)}
+    out["lambda"] = np.float32(lambda_at(step, config))
+    return out

@@ -1,0 +1,194 @@
+"""GradNet (Guo et al. 2019): network shapes, the unsupervised losses against hand computations, the
+post-process, the lambda schedule, and that training never reads a reference."""
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxdenoise.buffers import Buffers
+from jaxdenoise.methods import gradnet as G
+
+CFG = G.Config(widths=(8, 16, 16), g_width=8)  # a small network: the structure is the paper's
+
+
+def _frame(h, w, seed=0, lead=()):
+    rng = np.random.default_rng(seed)
+    s = lead + (h, w)
+    return {"color": rng.gamma(1.0, 0.5, s + (3,)).astype(np.float32),
+            "dx": rng.normal(0, 0.2, s + (3,)).astype(np.float32),
+            "dy": rng.normal(0, 0.2, s + (3,)).astype(np.float32),
+            "albedo": rng.random(s + (3,)).astype(np.float32),
+            "normal": rng.uniform(-1, 1, s + (3,)).astype(np.float32),
+            "depth": rng.uniform(0.5, 4.0, s + (1,)).astype(np.float32)}
+
+
+def _mu(x, mu=16.0):
+    return np.sign(x) * np.log1p(np.abs(x) * mu) / np.log1p(mu)
+
+
+@pytest.mark.parametrize("hw", [(1, 1), (7, 5), (33, 64)])
+def test_any_size_gives_a_finite_image_of_that_size(hw):
+    params = G.init(jax.random.PRNGKey(0), CFG)
+    out = G.apply(params, Buffers(**_frame(*hw)), CFG)
+    assert out.shape == hw + (3,)
+    assert bool(jnp.all(jnp.isfinite(out))) and bool(jnp.all(out >= 0))
+
+
+def test_parameter_count_of_the_default_network():
+    """Default widths (24, 48, 96), four residual blocks of 192 channels, G-branch of width 32:
+    3,135,184 parameters (docs/methods/gradnet.md)."""
+    assert G.num_params(G.Config()) == 3_135_184
+
+
+def test_needs_are_the_papers_inputs():
+    assert G.needs(CFG) == {"color", "dx", "dy", "albedo", "normal", "depth"}
+
+
+def test_features_are_scaled_to_unit_range():
+    f = _frame(4, 4)
+    feat = np.asarray(G.features(jnp.asarray(f["albedo"]), jnp.asarray(f["normal"]), jnp.asarray(f["depth"])))
+    assert feat.shape == (4, 4, 7)
+    np.testing.assert_allclose(feat[..., 3:6], (f["normal"] + 1) / 2, rtol=1e-6)
+    np.testing.assert_allclose(feat[..., 6:], f["depth"] / f["depth"].max(), rtol=1e-6)
+    assert feat.min() >= 0 and feat.max() <= 1
+
+
+def test_losses_against_a_hand_computation_on_4x4():
+    """Eq. 8-11 computed with plain loops in NumPy (tolerance 1e-5 relative, float32)."""
+    f = _frame(4, 4, seed=3)
+    params = G.init(jax.random.PRNGKey(1), CFG)
+    t = {k: float(v) for k, v in G.loss_terms(params, f, CFG).items()}
+    y, Gm, x = G.predict(params, f, CFG)
+    y = np.asarray(y, np.float64)  # T(I_hat)
+    Gm = np.asarray(Gm, np.float64)  # (4, 4, 7, 3)
+    tb = _mu(np.maximum(f["color"], 0).astype(np.float64))
+    feat = np.asarray(x["feat"], np.float64)
+    hdr = np.sign(y) * ((1 + 16.0) ** np.abs(y) - 1) / 16.0
+    # Eq. 8
+    data = np.mean([np.abs(y[i, j] - tb[i, j]).sum() for i in range(4) for j in range(4)])
+    # Eq. 9
+    gx = [np.abs(_mu(hdr[i, j + 1] - hdr[i, j]) - _mu(f["dx"][i, j].astype(np.float64))).sum()
+          for i in range(4) for j in range(3)]
+    gy = [np.abs(_mu(hdr[i + 1, j] - hdr[i, j]) - _mu(f["dy"][i, j].astype(np.float64))).sum()
+          for i in range(3) for j in range(4)]
+    grad = np.mean(gx) + np.mean(gy)
+
+    # Eq. 10 / 11
+    def first(img):
+        tot, n = 0.0, 0
+        for i in range(4):
+            for j in range(4):
+                for di, dj in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+                    a, b = i + di, j + dj
+                    if not (0 <= a < 4 and 0 <= b < 4):
+                        continue
+                    w = math.exp(-np.sum((tb[i, j] - tb[a, b]) ** 2) / (2 / 18))
+                    pred = Gm[i, j].T @ (feat[a, b] - feat[i, j])
+                    tot += w * np.abs(img[a, b] - img[i, j] - pred).sum()
+                    n += 1
+        return tot / n
+
+    np.testing.assert_allclose(t["data"], data, rtol=1e-5)
+    np.testing.assert_allclose(t["grad"], grad, rtol=1e-5)
+    np.testing.assert_allclose(t["first"], first(y), rtol=1e-5)
+    np.testing.assert_allclose(t["g_branch"], first(tb), rtol=1e-5)
+
+
+def test_gradient_loss_vanishes_for_exact_gradients():
+    rng = np.random.default_rng(5)
+    img = rng.gamma(1.0, 1.0, (6, 7, 3)).astype(np.float32)
+    dx = np.zeros_like(img)
+    dy = np.zeros_like(img)
+    dx[:, :-1] = img[:, 1:] - img[:, :-1]
+    dy[:-1] = img[1:] - img[:-1]
+    x = {"tdx": G.mu_law(jnp.asarray(dx), CFG.mu), "tdy": G.mu_law(jnp.asarray(dy), CFG.mu)}
+    assert float(G._grad_loss(jnp.asarray(img), x, CFG)) < 1e-6  # float32 rounding of the differences
+
+
+def test_first_order_weights_against_numpy():
+    rng = np.random.default_rng(2)
+    tb = rng.random((5, 6, 3)).astype(np.float32)
+    w = [np.asarray(v) for v in G.first_order_weights(jnp.asarray(tb), CFG)]
+    right = np.exp(-np.sum((tb[:, 1:] - tb[:, :-1]) ** 2, -1, keepdims=True) * 9.0)  # 1/(2/18) = 9
+    down = np.exp(-np.sum((tb[1:] - tb[:-1]) ** 2, -1, keepdims=True) * 9.0)
+    np.testing.assert_allclose(w[0], right, rtol=1e-6)
+    np.testing.assert_allclose(w[1], right, rtol=1e-6)  # the left pairs, seen from the other pixel
+    np.testing.assert_allclose(w[2], down, rtol=1e-6)
+    np.testing.assert_allclose(w[3], down, rtol=1e-6)
+
+
+def test_postprocess_keeps_an_output_that_already_agrees_with_the_base():
+    """Eq. 13 with out == base is the identity (tolerance 1e-5 relative: float32 blur ratios); a
+    uniformly scaled output is scaled back to the base's local mean."""
+    rng = np.random.default_rng(4)
+    base = jnp.asarray(rng.gamma(1.0, 1.0, (40, 50, 3)).astype(np.float32))
+    np.testing.assert_allclose(np.asarray(G.postprocess(base, base, CFG)), np.asarray(base), rtol=1e-5)
+    np.testing.assert_allclose(np.asarray(G.postprocess(base * 2.0, base, CFG)), np.asarray(base), rtol=1e-5)
+    zero = jnp.zeros_like(base)  # guard: a black output stays black (no 0/0)
+    assert bool(jnp.all(G.postprocess(zero, base, CFG) == 0))
+
+
+def test_lambda_schedule_in_steps():
+    """Eq. 14: 0 through epoch 5, then 0.1 x 1.1^(epoch - 5), capped at 2; an epoch is
+    epoch_patches / train_batch autoencoder steps, i.e. twice that many trainer steps."""
+    c = G.Config(epoch_patches=64, train_batch=8)  # 8 autoencoder steps = 16 trainer steps per epoch
+    assert G.lambda_at(0, c) == 0.0 and G.lambda_at(5 * 16 - 1, c) == 0.0
+    assert G.lambda_at(5 * 16, c) == pytest.approx(0.11)
+    assert G.lambda_at(9 * 16, c) == pytest.approx(0.1 * 1.1 ** 5)
+    assert G.lambda_at(10_000 * 16, c) == 2.0
+
+
+def test_training_never_reads_a_reference():
+    """The batch carries no reference; poisoning one in changes nothing (the loss is a function of
+    the noisy inputs only)."""
+    f = _frame(16, 16, seed=7, lead=(2,))
+    params = G.init(jax.random.PRNGKey(2), CFG)
+    clean = {**f, "lambda": np.float32(0.5)}
+    poisoned = {**clean, "reference": np.full_like(f["color"], np.nan)}
+    for group in ("autoencoder", "gbranch", None):
+        a = float(G.loss(params, clean, CFG, group=group))
+        b = float(G.loss(params, poisoned, CFG, group=group))
+        assert np.isfinite(a) and a == b
+
+
+def test_groups_are_trained_separately():
+    """The autoencoder's loss has no gradient on the G-branch (Eq. 10 holds G fixed) and Eq. 11 none
+    on the autoencoder, so the alternating updates touch only their own group."""
+    f = {**_frame(16, 16, seed=8, lead=(2,)), "lambda": np.float32(1.0)}
+    params = G.init(jax.random.PRNGKey(3), CFG)
+    ga = jax.grad(lambda p: G.loss(p, f, CFG, group="autoencoder"))(params)
+    gg = jax.grad(lambda p: G.loss(p, f, CFG, group="gbranch"))(params)
+    norm = lambda t: float(sum(jnp.sum(jnp.abs(v)) for v in jax.tree_util.tree_leaves(t)))  # noqa: E731
+    assert norm(ga["gbranch"]) == 0.0 and norm(gg["data"]) + norm(gg["dec"]) == 0.0
+    for k in ("data", "grad", "res", "dec"):
+        assert norm(ga[k]) > 0, k
+    assert norm(gg["gbranch"]) > 0
+    assert set(G.param_groups(CFG)["autoencoder"]) | set(G.param_groups(CFG)["gbranch"]) == set(params)
+
+
+def test_illegal_renders_are_found():
+    """NaN anywhere or negative base radiance marks a render; signed gradients do not."""
+
+    class Fake:
+        slices = {"color": slice(0, 3), "dx": slice(3, 6), "dy": slice(6, 9), "albedo": slice(9, 12),
+                  "normal": slice(12, 15), "depth": slice(15, 16)}
+
+        def __init__(self, arrays):
+            self._a = arrays
+            self.frames = [{"array": str(i)} for i in range(len(arrays))]
+
+        def array(self, name):
+            return self._a[int(name)]
+
+    ok = np.abs(np.random.default_rng(0).normal(size=(4, 4, 16))).astype(np.float32)
+    signed = ok.copy()
+    signed[..., 3:9] *= -1  # negative gradients are legal
+    nan = ok.copy()
+    nan[1, 2, 13] = np.nan
+    neg = ok.copy()
+    neg[0, 0, 1] = -0.1
+    assert G.illegal_frames(Fake([ok, signed, nan, neg])) == [2, 3]
