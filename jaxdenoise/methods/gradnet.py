@@ -83,7 +83,7 @@ class Config:
     train_spps: tuple[int, ...] = (64,)  # the paper's 64-spp G-PT renders
     train_crop: int = 128  # the paper's patches are 256x256 (out of reach here)
     train_batch: int = 8  # the paper's 32 (out of reach on 2 CPU cores)
-    epoch_patches: int = 1024  # patches per "epoch" (ours; the paper: 11,785); sets Eq. 14 and the lr decay
+    epoch_patches: int = 512  # patches per "epoch" (ours; the paper: 11,785); sets Eq. 14 and the lr decay
 
     def __post_init__(self) -> None:
         if len(self.widths) != 3 or any(int(w) < 1 for w in self.widths):
@@ -104,7 +104,7 @@ def _epoch_steps(config: Config) -> int:
 # Adam beta1 0.5, beta2 0.999, lr 1e-4 x 0.95 every other epoch (Sec. 5.2); the schedule counts each
 # group's own updates (one per autoencoder batch), so "every other epoch" is 2 x epoch_patches / batch.
 TRAIN: dict[str, Any] = {"optimizer": "adam", "learning_rate": 1e-4, "adam_b1": 0.5, "adam_b2": 0.999,
-                         "schedule": "step", "schedule_every": 256, "schedule_factor": 0.95, "steps": 12800,
+                         "schedule": "step", "schedule_every": 128, "schedule_factor": 0.95, "steps": 6400,
                          "checkpoint_every": 100}
 WEIGHTS = "gradnet"
 
