@@ -42,6 +42,7 @@ def test_any_size_gives_the_input_shape(h, w):
     assert y.shape == (h, w, 3) and bool(jnp.all(jnp.isfinite(y)))
 
 
+@pytest.mark.slow  # 15 s (SEMC's width search builds many networks)
 def test_parameter_counts_and_semc_matches_demc():
     """The count `num_params` states equals the leaves of `init` (without the 24 norm values); the
     SEMC ablation is widened to DEMC's count within 1 % (Sec. 4.4, Fig. 4)."""
@@ -99,6 +100,7 @@ def test_batchnorm_train_and_eval_modes():
     assert not np.allclose(before, np.asarray(trained), rtol=1e-3, atol=0)
 
 
+@pytest.mark.slow  # 23 s (a full training step's gradient)
 def test_every_branch_receives_gradient():
     """No dead branch: after one gradient step (the fresh Eq. 3 fusion has zero encoder blocks, so at
     the very start only its weights see the encoders), the fusion sub-network and both encoders get a

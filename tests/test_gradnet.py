@@ -30,6 +30,7 @@ def _mu(x, mu=16.0):
     return np.sign(x) * np.log1p(np.abs(x) * mu) / np.log1p(mu)
 
 
+@pytest.mark.slow  # 22 s of compilation; the stability suite runs gradnet at 1x1 in the default run
 @pytest.mark.parametrize("hw", [(1, 1), (7, 5), (33, 64)])
 def test_any_size_gives_a_finite_image_of_that_size(hw):
     params = G.init(jax.random.PRNGKey(0), CFG)
@@ -155,6 +156,7 @@ def test_training_never_reads_a_reference():
         assert np.isfinite(a) and a == b
 
 
+@pytest.mark.slow  # 20 s: two full gradients
 def test_groups_are_trained_separately():
     """The autoencoder's loss has no gradient on the G-branch (Eq. 10 holds G fixed) and Eq. 11 none
     on the autoencoder, so the alternating updates touch only their own group."""

@@ -46,7 +46,11 @@ SMALL = {"lbf": {"radius": 1, "prefilter": False}, "lbf-nlm": {"radius": 1, "pre
          "poisson-l1": {"solver": "admm"}}
 
 
-@pytest.mark.parametrize("name", names())
+# The convolutional networks' batch check compiles a full network twice (10-16 s each): under `slow`.
+NETWORKS = ("demc", "rae", "gradnet")
+
+
+@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.slow) if n in NETWORKS else n for n in names()])
 def test_leading_axis_is_a_batch_of_independent_frames(name):
     from jaxdenoise.api import prepare, resolve
 
