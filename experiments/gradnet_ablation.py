@@ -50,8 +50,7 @@ def main(argv=None) -> int:
         t0 = time.perf_counter()
         s = train("gradnet", args.data, folder, steps=args.steps, seed=args.seed, config=cfg, dataset=dataset,
                   val_data=args.val, val_spps=[int(v) for v in args.val_spps.split(",")],
-                  validate_every=args.validate_every, resume=True, progress=False,
-                  schedule_every=max(1, 2 * -(-args.epoch_patches // cfg.train_batch)))
+                  validate_every=args.validate_every, resume=True, progress=False)
         results[name] = {"config": over, "validation": s["validation"], "best": s["best"],
                          "seconds": time.perf_counter() - t0, "folder": str(folder)}
         print(name, s["line"], flush=True)
