@@ -252,11 +252,15 @@ def predict(params: dict, buffers: Any, config: Config) -> tuple[jax.Array, jax.
     """``(T(I_hat), G, inputs)`` at the frame's own size (padded to a multiple of 8 for the network
     and cropped back)."""
     xp, size = _padded(buffers, config)
-    x = inputs(buffers, config)
     y = nn.crop_to(forward(params, xp, config), size)
+    return y, _g_cropped(params, xp, size, config), inputs(buffers, config)
+
+
+def _g_cropped(params: dict, xp: dict, size: tuple[int, int], config: Config) -> jax.Array:
+    """`g_branch` on padded inputs, cropped back to the frame's ``size``: ``(..., H, W, 7, 3)``."""
     g = g_branch(params, xp, config)
     g = nn.crop_to(g.reshape(g.shape[:-2] + (N_FEAT * 3,)), size)
-    return y, g.reshape(g.shape[:-1] + (N_FEAT, 3)), x
+    return g.reshape(g.shape[:-1] + (N_FEAT, 3))
 
 
 def _padded(buffers, config):
@@ -399,9 +403,8 @@ def loss(params: dict, batch: dict, config: Config, group: str | None = None):
     if group == "gbranch":
         xp, size = _padded(batch, config)
         x = inputs(batch, config)
-        g = g_branch(params, xp, config)
-        g = nn.crop_to(g.reshape(g.shape[:-2] + (N_FEAT * 3,)), size)
-        return _first_order(x["tb"], g.reshape(g.shape[:-1] + (N_FEAT, 3)), x["feat"], first_order_weights(x["tb"], config))
+        return _first_order(x["tb"], _g_cropped(params, xp, size, config), x["feat"],
+                            first_order_weights(x["tb"], config))
     t = loss_terms(params, batch, config)
     l_all = t["grad"] + config.alpha * t["data"] + (lam * t["first"] if config.first_order else 0.0)
     if group == "autoencoder":
