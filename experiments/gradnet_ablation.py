@@ -1,12 +1,17 @@
-"""GradNet's loss and compression ablations at an equal, short budget (issue 15, item 6): the full
-loss L_all against L_data + L_grad (Fig. 12), and the mu-law (mu = 16) against log(1 + |I|)
-compression (Fig. 17, convergence curves). Every variant trains with the same code, data, seed and
-steps (`jaxdenoise.train.train`), validated on the same frames every ``--validate-every`` steps; the
-schedule is compressed to the budget (an epoch of ``--epoch-patches`` patches, so that Eq. 14's
-lambda is on for most of the run). Writes the curves and the final scores as JSON and a plot.
+"""GradNet ablations at an equal, short budget. ``--study loss`` (issue 15, item 6): the full loss
+L_all against L_data + L_grad (Fig. 12), and the mu-law (mu = 16) against log(1 + |I|) compression
+(Fig. 17, convergence curves). ``--study decoder``: the decoder as first built (three deconvolutions,
+the last one giving the output) against the input-skip decoder the shipped network uses, each at the
+paper's learning rate (1e-4) and at ours (1e-3, gradient norm clipped to 1) (docs/methods/gradnet.md).
+Every variant trains with the same code, data, seed and steps (`jaxdenoise.train.train`), validated
+on the same frames every ``--validate-every`` steps; the schedule is compressed to the budget (an
+epoch of ``--epoch-patches`` patches, so that Eq. 14's lambda is on for most of the run). Writes the
+curves and the final scores as JSON and a plot.
 
-    python experiments/gradnet_ablation.py --data data/gradnet_train --val data/gradnet_val \
+    python experiments/gradnet_ablation.py --study loss --data data/gradnet_train --val data/gradnet_val \
         --steps 1500 --out docs/results/gradnet_ablation
+    python experiments/gradnet_ablation.py --study decoder --data data/gradnet_train --val data/gradnet_val \
+        --steps 2000 --out docs/results/gradnet_decoder
 """
 from __future__ import annotations
 
@@ -22,15 +27,26 @@ from jaxdenoise.fsutil import write_json  # noqa: E402
 from jaxdenoise.methods import gradnet  # noqa: E402
 from jaxdenoise.train import train  # noqa: E402
 
-VARIANTS = {
-    "L_all (mu-law)": {},
-    "L_data + L_grad (mu-law)": {"first_order": False},
-    "L_all (log)": {"compression": "log"},
+PAPER_LR = {"learning_rate": 1e-4, "clip_norm": None}  # Sec. 5.2 (the trainer's other defaults: gradnet.TRAIN)
+# study -> variant -> (method config overrides, trainer overrides)
+STUDIES = {
+    "loss": {
+        "L_all (mu-law)": ({}, {}),
+        "L_data + L_grad (mu-law)": ({"first_order": False}, {}),
+        "L_all (log)": ({"compression": "log"}, {}),
+    },
+    "decoder": {
+        "first decoder, lr 1e-4": ({"input_skip": False}, PAPER_LR),
+        "first decoder, lr 1e-3 + clip": ({"input_skip": False}, {}),
+        "input skip, lr 1e-4": ({}, PAPER_LR),
+        "input skip, lr 1e-3 + clip": ({}, {}),
+    },
 }
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--study", choices=sorted(STUDIES), default="loss")
     ap.add_argument("--data", required=True)
     ap.add_argument("--val", required=True)
     ap.add_argument("--val-spps", default="64")
@@ -44,14 +60,15 @@ def main(argv=None) -> int:
     base = dataclasses.replace(gradnet.Config(), epoch_patches=args.epoch_patches)
     dataset = gradnet.make_dataset(args.data, base)
     results = {}
-    for name, over in VARIANTS.items():
+    for name, (over, train_over) in STUDIES[args.study].items():
         cfg = dataclasses.replace(base, **over)
-        folder = Path(args.runs) / name.replace(" ", "_").replace("(", "").replace(")", "").replace("+", "plus")
+        slug = "".join(c if c.isalnum() or c in "-." else "_" for c in name.replace("+", "plus"))
+        folder = Path(args.runs) / args.study / slug
         t0 = time.perf_counter()
         s = train("gradnet", args.data, folder, steps=args.steps, seed=args.seed, config=cfg, dataset=dataset,
                   val_data=args.val, val_spps=[int(v) for v in args.val_spps.split(",")],
-                  validate_every=args.validate_every, resume=True, progress=False)
-        results[name] = {"config": over, "validation": s["validation"], "best": s["best"],
+                  validate_every=args.validate_every, resume=True, progress=False, **train_over)
+        results[name] = {"config": over, "train": train_over, "validation": s["validation"], "best": s["best"],
                          "seconds": time.perf_counter() - t0, "folder": str(folder)}
         print(name, s["line"], flush=True)
     out = Path(args.out)

@@ -40,9 +40,12 @@ def test_any_size_gives_a_finite_image_of_that_size(hw):
 
 
 def test_parameter_count_of_the_default_network():
-    """Default widths (24, 48, 96), four residual blocks of 192 channels, G-branch of width 32:
-    3,135,184 parameters (docs/methods/gradnet.md)."""
-    assert G.num_params(G.Config()) == 3_135_184
+    """Default widths (24, 48, 96), four residual blocks of 192 channels, last deconvolution to 24
+    channels joined with the 16 input channels by a 3x3 conv, G-branch of width 32: 3,160,480
+    parameters (docs/methods/gradnet.md); without the input skip the last deconvolution gives the 3
+    output channels itself: 3,135,184."""
+    assert G.num_params(G.Config()) == 3_160_480
+    assert G.num_params(G.Config(input_skip=False)) == 3_135_184
 
 
 def test_needs_are_the_papers_inputs():
@@ -58,10 +61,24 @@ def test_features_are_scaled_to_unit_range():
     assert feat.min() >= 0 and feat.max() <= 1
 
 
+def _nonzero_output(params):
+    """The output layer starts at zero (the network starts at T(I_b)); give it random weights so the
+    loss checks see an output that differs from the base image."""
+    out = jax.tree_util.tree_map(lambda a: 0.1 * np.random.default_rng(5).standard_normal(a.shape).astype(np.float32),
+                                 params["out"])
+    return {**params, "out": out}
+
+
+def test_output_layer_starts_at_zero_so_the_network_starts_at_the_base_image():
+    f = _frame(8, 8, seed=4)
+    y, _, x = G.predict(G.init(jax.random.PRNGKey(2), CFG), f, CFG)
+    np.testing.assert_array_equal(np.asarray(y), np.asarray(x["tb"]))
+
+
 def test_losses_against_a_hand_computation_on_4x4():
     """Eq. 8-11 computed with plain loops in NumPy (tolerance 1e-5 relative, float32)."""
     f = _frame(4, 4, seed=3)
-    params = G.init(jax.random.PRNGKey(1), CFG)
+    params = _nonzero_output(G.init(jax.random.PRNGKey(1), CFG))
     t = {k: float(v) for k, v in G.loss_terms(params, f, CFG).items()}
     y, Gm, x = G.predict(params, f, CFG)
     y = np.asarray(y, np.float64)  # T(I_hat)
@@ -161,12 +178,12 @@ def test_groups_are_trained_separately():
     """The autoencoder's loss has no gradient on the G-branch (Eq. 10 holds G fixed) and Eq. 11 none
     on the autoencoder, so the alternating updates touch only their own group."""
     f = {**_frame(16, 16, seed=8, lead=(2,)), "lambda": np.float32(1.0)}
-    params = G.init(jax.random.PRNGKey(3), CFG)
+    params = _nonzero_output(G.init(jax.random.PRNGKey(3), CFG))
     ga = jax.grad(lambda p: G.loss(p, f, CFG, group="autoencoder"))(params)
     gg = jax.grad(lambda p: G.loss(p, f, CFG, group="gbranch"))(params)
     norm = lambda t: float(sum(jnp.sum(jnp.abs(v)) for v in jax.tree_util.tree_leaves(t)))  # noqa: E731
     assert norm(ga["gbranch"]) == 0.0 and norm(gg["data"]) + norm(gg["dec"]) == 0.0
-    for k in ("data", "grad", "res", "dec"):
+    for k in ("data", "grad", "res", "dec", "out"):
         assert norm(ga[k]) > 0, k
     assert norm(gg["gbranch"]) > 0
     assert set(G.param_groups(CFG)["autoencoder"]) | set(G.param_groups(CFG)["gbranch"]) == set(params)
@@ -194,3 +211,16 @@ def test_illegal_renders_are_found():
     neg = ok.copy()
     neg[0, 0, 1] = -0.1
     assert G.illegal_frames(Fake([ok, signed, nan, neg])) == [2, 3]
+
+
+def test_an_overshooting_output_decodes_finite_with_a_finite_gradient():
+    """T^-1 grows as 17^y: an output of 100 would overflow float32 (Inf, NaN gradient); `to_hdr`
+    clamps it to T(HDR_MAX) first, for both compressions."""
+    y = jnp.array([100.0, -100.0, 0.5, 0.0], jnp.float32)
+    for cfg in (CFG, G.Config(compression="log")):
+        hdr = G.to_hdr(y, cfg)
+        assert bool(jnp.all(jnp.isfinite(hdr)))
+        np.testing.assert_allclose(np.asarray(hdr[:2]), [G.HDR_MAX, -G.HDR_MAX], rtol=1e-4)
+        np.testing.assert_allclose(float(hdr[2]), float(G.decompress(jnp.float32(0.5), cfg)), rtol=1e-6)
+        g = jax.grad(lambda v: jnp.sum(G.to_hdr(v, cfg)))(y)
+        assert bool(jnp.all(jnp.isfinite(g)))
