@@ -9,9 +9,9 @@ epoch of ``--epoch-patches`` patches, so that Eq. 14's lambda is on for most of 
 curves and the final scores as JSON and a plot.
 
     python experiments/gradnet_ablation.py --study loss --data data/gradnet_train --val data/gradnet_val \
-        --steps 1500 --out docs/results/gradnet_ablation
+        --steps 1000 --validate-every 200 --out docs/results/gradnet_ablation
     python experiments/gradnet_ablation.py --study decoder --data data/gradnet_train --val data/gradnet_val \
-        --steps 2000 --out docs/results/gradnet_decoder
+        --steps 1000 --validate-every 200 --out docs/results/gradnet_decoder
 """
 from __future__ import annotations
 
@@ -36,10 +36,11 @@ STUDIES = {
         "L_all (log)": ({"compression": "log"}, {}),
     },
     "decoder": {
-        "first decoder, lr 1e-4": ({"input_skip": False}, PAPER_LR),
-        "first decoder, lr 1e-3 + clip": ({"input_skip": False}, {}),
-        "input skip, lr 1e-4": ({}, PAPER_LR),
-        "input skip, lr 1e-3 + clip": ({}, {}),
+        # L_data + L_grad only: the question is how fast each decoder leaves the base image
+        "first decoder, lr 1e-4": ({"input_skip": False, "first_order": False}, PAPER_LR),
+        "first decoder, lr 1e-3 + clip": ({"input_skip": False, "first_order": False}, {}),
+        "input skip, lr 1e-4": ({"first_order": False}, PAPER_LR),
+        "input skip, lr 1e-3 + clip": ({"first_order": False}, {}),
     },
 }
 
