@@ -48,6 +48,7 @@ import numpy as np
 from .. import nn
 from ..buffers import Buffers
 from ..color import inv_log_transform, inv_mu_law, log_transform, mu_law
+from ..filters import gaussian
 
 __all__ = ["Config", "needs", "init", "apply", "forward", "loss", "loss_terms", "make_dataset", "batch",
            "param_groups", "group_train", "inputs", "predict", "g_branch", "features", "postprocess", "lambda_at", "first_order_weights",
@@ -294,37 +295,24 @@ def _padded(buffers, config):
     return {k: nn.pad_to_multiple(v, STRIDE)[0] for k, v in x.items()}, size
 
 
-def _gauss_taps(config: Config) -> np.ndarray:
-    r = int(config.pp_radius)
-    t = np.arange(-r, r + 1, dtype=np.float64)
-    k = np.exp(-0.5 * (t / config.pp_sigma) ** 2)
-    return (k / k.sum()).astype(np.float32)
-
-
-def _blur(x: jax.Array, taps: np.ndarray) -> jax.Array:
-    """Separable zero-padded Gaussian over the two image axes of ``(..., H, W, C)``."""
-    k = jnp.asarray(taps)
-    r = (len(taps) - 1) // 2
+def _blur(x: jax.Array, config: Config) -> jax.Array:
+    """The Gaussian of Sec. 4.5 (radius ``pp_radius``, sigma ``pp_sigma``) over the two image axes of
+    ``(..., H, W, C)``: `jaxdenoise.filters.gaussian` (separable shifted-slice sums, the kernel
+    renormalized at the border) with the leading axes folded into the channels."""
     lead = x.shape[:-3]
     h, w, c = x.shape[-3:]
-    y = x.reshape((-1, h, w, c))
-    y = jnp.moveaxis(y, -1, 1).reshape((-1, 1, h, w))  # (N*C, 1, H, W)
-    kh = k.reshape(1, 1, -1, 1)
-    kw = k.reshape(1, 1, 1, -1)
-    dn = ("NCHW", "OIHW", "NCHW")
-    y = jax.lax.conv_general_dilated(y, kh, (1, 1), ((r, r), (0, 0)), dimension_numbers=dn)
-    y = jax.lax.conv_general_dilated(y, kw, (1, 1), ((0, 0), (r, r)), dimension_numbers=dn)
-    y = jnp.moveaxis(y.reshape((-1, c, h, w)), 1, -1)
-    return y.reshape(lead + (h, w, c))
+    y = jnp.moveaxis(x.reshape((-1, h, w, c)), 0, 2).reshape((h, w, -1))
+    y = gaussian(y, config.pp_sigma, radius=int(config.pp_radius))
+    return jnp.moveaxis(y.reshape((h, w, -1, c)), 2, 0).reshape(lead + (h, w, c))
 
 
 def postprocess(out: jax.Array, base: jax.Array, config: Config) -> jax.Array:
     """Eq. 13: ``out <- (base * k) / (out * k) . out``, per channel, with the Gaussian ``k`` of
-    Sec. 4.5 (zero padding: the same kernel mass on both sides of the ratio). Guard: where
-    ``out * k`` is below 1e-6 times its channel's mean (or non-finite), ``out`` is kept."""
-    taps = _gauss_taps(config)
-    num = _blur(base, taps)
-    den = _blur(out, taps)
+    Sec. 4.5 (at the border both blurs are renormalized by the same in-image kernel mass, which the
+    ratio cancels). Guard: where ``out * k`` is below 1e-6 times its channel's mean (or non-finite),
+    ``out`` is kept. Both images are blurred in one call."""
+    both = _blur(jnp.concatenate([base, out], -1), config)
+    num, den = both[..., :base.shape[-1]], both[..., base.shape[-1]:]
     floor = 1e-6 * jnp.mean(jnp.abs(den), axis=(-3, -2), keepdims=True) + 1e-12
     ratio = num / jnp.where(den > floor, den, 1.0)
     ok = (den > floor) & jnp.isfinite(ratio)
