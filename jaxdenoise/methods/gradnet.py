@@ -18,12 +18,15 @@ Network (Sec. 4.4, Fig. 4):
 - a **decoder** of 4x4 stride-2 deconvolutions with the **dual skip connections** of Eq. 12: level
   ``l`` deconvolves the concatenation of the previous decoder tensor and the data- and
   gradient-branch tensors of the same resolution; three deconvolutions bring the 1/8 resolution back
-  to full resolution, the last one to 3 channels without activation;
+  to full resolution; the last one's 24 channels are joined with the two branches' full-resolution
+  inputs and a 3x3 conv without activation, **zero-initialised**, gives the 3 output channels
+  (``Config.input_skip``, ours: the U-Net input level; without it, the network first built here,
+  the last deconvolution gives the output and the network did not learn: docs/methods/gradnet.md);
 - the output is *added* to ``T(I_b)`` (ours: Fig. 4 draws ``I_b`` and a ``+`` at the output; a
   residual to the base image also starts training from the base, docs/methods/gradnet.md);
 - a **G-branch** of three 3x3 convs on the data-branch input producing, per pixel, the 7 x 3
   first-order derivatives ``G`` used by L_1st (input and width ours), the last without activation;
-- leaky ReLU slope 0.01 everywhere else; He initialisation (Sec. 5.2).
+- leaky ReLU slope 0.01 everywhere else; He initialisation (Sec. 5.2) except the output conv.
 
 Losses (Sec. 4.3), all unsupervised (no reference is read), all in the mu-law domain: ``L_data``
 (Eq. 8), ``L_grad`` (Eq. 9), ``L_1st`` (Eq. 10: 4-neighbourhood, ``w_ij = exp(-|T(I_b,i) -
