@@ -64,6 +64,8 @@ VIEW_VECTORS = ("normal_view",)
 # Derived per-pixel scalars (turned and mirrored like any image).
 DERIVED_SCALARS = ("depth_linear",)
 CACHE_VERSION = 2  # 2: camera matrices in the index
+# Integer bookkeeping of a whole-render export: each render's video (-1: a single shot) and frame.
+_INDEX = ("video", "frame")
 
 
 def _save_npy(path: Path, array: np.ndarray) -> None:
@@ -237,6 +239,37 @@ def _videos(frames: list[dict]) -> list[dict[int, list[int]]]:
     return [{t: ids for t, ids in sorted(v.items())} for _, v in sorted(seq.items())]
 
 
+def _sample_sequences(videos: list[dict], item, shape, n: int, size: int, rng: np.random.Generator, *,
+                      frames: int, stop_probability: float, max_stop: int, aug: dict, where) -> dict[str, np.ndarray]:
+    """The sequence-crop sampler of `Cache.sequences` and `ExportedCache.sequences`: ``videos`` as
+    `_videos` gives them (frame -> the keys of its noise instances), ``item(key, y, x, size)`` a
+    cropped render, ``shape(key)`` its size."""
+    videos = [v for v in videos if len(v) >= frames]
+    if not videos:
+        raise ValueError(f"{where}: no sequence with {frames} frames")
+    aug = {"reverse": True, **aug}
+    items = []
+    for _ in range(int(n)):
+        v = videos[int(rng.integers(0, len(videos)))]
+        keys = list(v)
+        t0 = int(rng.integers(0, len(keys) - frames + 1))
+        picks = [(keys[t0 + k], 0) for k in range(frames)]
+        if stop_probability and rng.random() < stop_probability and max(len(ids) for ids in v.values()) > 1:
+            start = int(rng.integers(0, frames - 1))
+            length = int(rng.integers(2, max_stop + 1))
+            stop_t = picks[start][0]
+            for k in range(start, min(frames, start + length)):
+                picks[k] = (stop_t, k - start)
+            for k in range(start + length, frames):
+                picks[k] = (keys[min(len(keys) - 1, t0 + k - length + 1)], 0)
+        h, w = shape(v[picks[0][0]][0])
+        c = min(size, h, w)
+        y, x = int(rng.integers(0, h - c + 1)), int(rng.integers(0, w - c + 1))
+        seq = [item(v[t][inst % len(v[t])], y, x, c) for t, inst in picks]
+        items.append(_augment_maybe({f: np.stack([s[f] for s in seq]) for f in seq[0]}, rng, aug))
+    return _stack(items)
+
+
 class Cache:
     """A decoded cache (`build_cache`): memory-mapped arrays and crop / sequence samplers."""
 
@@ -297,56 +330,60 @@ class Cache:
         the cached videos; with ``stop_probability`` a camera stop (module docstring) of 2..``max_stop``
         frames is inserted, cycling through the stopped frame's noise instances (sequences whose
         frames have one instance get none). ``reverse`` playback is on by default here."""
-        videos = [v for v in self.videos if len(v) >= frames]
-        if not videos:
-            raise ValueError(f"{self.folder}: no cached sequence with {frames} frames")
-        aug = {"reverse": True, **aug}
-        items = []
-        for _ in range(int(n)):
-            v = videos[int(rng.integers(0, len(videos)))]
-            keys = list(v)
-            t0 = int(rng.integers(0, len(keys) - frames + 1))
-            picks = [(keys[t0 + k], 0) for k in range(frames)]
-            if stop_probability and rng.random() < stop_probability and max(len(ids) for ids in v.values()) > 1:
-                start = int(rng.integers(0, frames - 1))
-                length = int(rng.integers(2, max_stop + 1))
-                stop_t = picks[start][0]
-                for k in range(start, min(frames, start + length)):
-                    picks[k] = (stop_t, k - start)
-                for k in range(start + length, frames):
-                    picks[k] = (keys[min(len(keys) - 1, t0 + k - length + 1)], 0)
-            i0 = v[picks[0][0]][0]
-            h, w = self.array(self.frames[i0]["array"]).shape[:2]
-            c = min(size, h, w)
-            y, x = int(rng.integers(0, h - c + 1)), int(rng.integers(0, w - c + 1))
-            seq = [self._item(v[t][inst % len(v[t])], y, x, c) for t, inst in picks]
-            item = {f: np.stack([s[f] for s in seq]) for f in seq[0]}
-            items.append(_augment_maybe(item, rng, aug))
-        return _stack(items)
+        return _sample_sequences(self.videos, self._item, lambda i: self.array(self.frames[i]["array"]).shape[:2],
+                                 n, size, rng, frames=frames, stop_probability=stop_probability,
+                                 max_stop=max_stop, aug=aug, where=self.folder)
 
-    def whole(self, spps: Sequence[int] | None = None) -> dict[str, np.ndarray]:
-        """Every cached render (at ``spps``, or all) whole, in cache order, stacked like `crops`
-        (the renders must share one size)."""
+    def _pool(self, spps: Sequence[int] | None, instances: int | None = None) -> list[int]:
+        """Indices of the renders at ``spps`` (all if None), keeping at most the first ``instances``
+        noise instances of each sequence frame."""
         pool = [i for i, f in enumerate(self.frames) if spps is None or f["spp"] in set(spps)]
+        if instances is not None:
+            seen: dict[tuple, int] = {}
+            keep = []
+            for i in pool:
+                f = self.frames[i]
+                k = (f.get("sequence"), f["spp"], f.get("frame"), f["shot"] if f.get("sequence") is None else None)
+                seen[k] = seen.get(k, 0) + 1
+                if f.get("sequence") is None or seen[k] <= instances:
+                    keep.append(i)
+            pool = keep
         if not pool:
             raise ValueError(f"{self.folder}: no cached render" + (f" at spp {list(spps)}" if spps else ""))
+        return pool
+
+    def whole(self, spps: Sequence[int] | None = None, instances: int | None = None) -> dict[str, np.ndarray]:
+        """Every cached render (at ``spps``, or all; at most ``instances`` noise instances of each
+        sequence frame) whole, in cache order, stacked like `crops` (the renders must share one
+        size), with each render's ``video`` (index of its sequence, -1 for a single shot) and
+        ``frame`` (its frame number, -1) so that an export keeps the videos."""
+        pool = self._pool(spps, instances)
         sizes = {self.array(self.frames[i]["array"]).shape[:2] for i in pool}
         if len(sizes) != 1:
             raise ValueError(f"{self.folder}: renders of several sizes {sorted(sizes)}; whole frames need one")
         (h, w), = sizes
-        return _stack([self._item(i, 0, 0, max(h, w)) for i in pool])
+        out = _stack([self._item(i, 0, 0, max(h, w)) for i in pool])
+        names = sorted({self.frames[i]["sequence"] for i in pool if self.frames[i].get("sequence") is not None})
+        out["video"] = np.asarray([names.index(self.frames[i]["sequence"]) if self.frames[i].get("sequence") is not None
+                                   else -1 for i in pool], np.int32)
+        out["frame"] = np.asarray([-1 if self.frames[i].get("frame") is None else self.frames[i]["frame"]
+                                   for i in pool], np.int32)
+        return out
 
     def export(self, path: str | os.PathLike, *, n: int, size: int = 0, rng: np.random.Generator | None = None,
                frames: int | None = None, max_mib: float = 60.0, spps: Sequence[int] | None = None,
-               whole: bool = False) -> dict:
+               whole: bool = False, instances: int | None = None) -> dict:
         """Write ``n`` crops (or ``frames``-long sequence crops) without augmentation to one compact
         ``.npz`` (module docstring), keeping as many as fit in ``max_mib``; returns its summary
         (``count``, ``bytes``, ``per_item_bytes``), also stored in the file. ``spps`` restricts the
         renders; ``whole=True`` exports the first ``n`` renders whole (`whole`) instead of random
-        crops (validation frames; training sets small enough to travel as they are)."""
+        crops (validation frames; training sets small enough to travel as they are; videos keep their
+        order, frames and noise instances, at most ``instances`` of each frame, so that
+        `ExportedCache.sequences` samples them as `sequences` does here)."""
         if whole:
-            every = self.whole(spps)
+            every = self.whole(spps, instances)
             size = int(every["color"].shape[1])
+            n = min(int(n), len(every["color"]))
             draw = lambda k: {f: v[:k] for f, v in every.items()}
         elif frames is None:
             draw = lambda k: self.crops(k, size, rng, spps=spps, augment=False)
@@ -361,6 +398,7 @@ class Cache:
         enc = _encode(draw(count))
         summary = {"count": count, "requested": int(n), "fit": fit, "per_item_bytes": per_item, "size": size,
                    "frames": frames, "fields": self.fields, "max_mib": max_mib, "whole": bool(whole),
+                   "instances": instances,
                    "spps": None if spps is None else [int(s) for s in spps],
                    "source": str(json.loads((self.folder / "index.json").read_text())["data_dir"])}
         enc["summary"] = np.frombuffer(json.dumps(summary).encode(), np.uint8)
@@ -390,6 +428,8 @@ def _encode(batch: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
             out[f"u8_{f}"] = np.round((np.clip(v, lo, hi) - lo) / (hi - lo) * 255).astype(np.uint8)
         elif f == "spp" or f in MATRIX_FIELDS:
             out[f] = np.asarray(v, np.float32)
+        elif f in _INDEX:
+            out[f] = np.asarray(v, np.int32)
         else:
             out[f"f16_{f}"] = np.asarray(v, np.float16)
     return out
@@ -417,7 +457,34 @@ class ExportedCache:
                 self.items[k[4:]] = z[k].astype(np.float32)
             elif k == "spp" or k in MATRIX_FIELDS:
                 self.items[k] = z[k]
+        self.index = {k: z[k] for k in _INDEX if k in z.files}
         self.count = int(self.summary["count"])
+        if self.summary.get("frames"):  # fixed sequence crops: each is a video of one instance per frame
+            self.videos = [{t: [(i, t)] for t in range(int(self.summary["frames"]))} for i in range(self.count)]
+        elif "video" in self.index:  # whole renders that keep their videos (`Cache.whole`)
+            self.videos = _videos([{"sequence": None if v < 0 else int(v), "spp": float(s), "frame": int(t)}
+                                   for v, s, t in zip(self.index["video"], self.items["spp"], self.index["frame"])])
+        else:
+            self.videos = []
+
+    def _item(self, key, y: int, x: int, size: int) -> dict[str, np.ndarray]:
+        """Render ``key`` (an index, or ``(item, frame)`` of a sequence-crop export) cropped."""
+        i, t = key if isinstance(key, tuple) else (key, None)
+        out = {}
+        for f, v in self.items.items():
+            v = v[i] if t is None else v[i, t]
+            out[f] = v if f == "spp" or f in MATRIX_FIELDS else np.array(v[y:y + size, x:x + size])
+        return out
+
+    def _shape(self, key) -> tuple[int, int]:
+        return tuple(self.items["color"].shape[-3:-1])
+
+    def sequences(self, n: int, size: int, rng: np.random.Generator, *, frames: int = 7,
+                  stop_probability: float = 0.0, max_stop: int = 3, **aug: Any) -> dict[str, np.ndarray]:
+        """As `Cache.sequences`, on an export of whole videos (`Cache.export(whole=True)`: camera stops
+        use the exported noise instances) or of sequence crops (no other instance: no stops)."""
+        return _sample_sequences(self.videos, self._item, self._shape, n, size, rng, frames=frames,
+                                 stop_probability=stop_probability, max_stop=max_stop, aug=aug, where=self.path)
 
     def sample(self, n: int, rng: np.random.Generator, **aug: Any) -> dict[str, np.ndarray]:
         """``n`` items drawn with replacement, each augmented (`augment` keywords)."""

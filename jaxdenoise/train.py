@@ -305,37 +305,53 @@ def _validation_from_export(method: Any, path: Path, wanted: set | None) -> list
     ex = load_export(path)
     if not ex.summary.get("whole"):
         raise TrainError(f"{path}: holds random crops; validation needs whole frames (export with whole=True)")
-    frames = []
-    for i in range(ex.count):
-        spp = int(ex.items["spp"][i])
-        if wanted is not None and spp not in wanted:
-            continue
+
+    def load(i):
         where = f"{path}#{i}"
         fields = {f: v[i] for f, v in ex.items.items() if f not in ("reference", "spp")}
         try:
-            buffers = prepare(method, Buffers(**fields, spp=spp), where=where)
+            return prepare(method, Buffers(**fields, spp=int(ex.items["spp"][i])), where=where)
         except ValueError as e:
             raise TrainError(f"{where}: cannot validate {method.name} on it: {e}") from None
-        frames.append({"file": where, "spp": spp, "buffers": buffers, "reference": ex.items["reference"][i]})
+
+    frames = []
+    in_video = set()
+    for v in ex.videos:  # whole videos: the first noise instance of every frame, in time order
+        first = v[min(v)][0]
+        spp = int(ex.items["spp"][first])
+        in_video.update(i for ids in v.values() for i in ids)
+        if wanted is None or spp in wanted:
+            ids = [v[t][0] for t in sorted(v)]
+            frames.append({"file": f"{path}#video{int(ex.index['video'][first])}", "spp": spp,
+                           "frames": [load(i) for i in ids], "references": [ex.items["reference"][i] for i in ids]})
+    for i in range(ex.count):
+        spp = int(ex.items["spp"][i])
+        if i in in_video or (wanted is not None and spp not in wanted):
+            continue
+        frames.append({"file": f"{path}#{i}", "spp": spp, "buffers": load(i), "reference": ex.items["reference"][i]})
     if not frames:
         raise TrainError(f"{path}: no validation frame" + (f" at spp {sorted(wanted)}" if wanted else ""))
     return frames
 
 
 def validate(method: Any, params: Any, frames: list[dict]) -> dict:
-    """Mean RelMSE of ``method`` with ``params`` over ``frames`` (`load_validation`), overall and
-    per sampling rate; a sequence entry runs through the sequence driver (state carried, neighbours
-    read) and counts each of its frames. A non-finite output scores ``inf`` (never the best)."""
+    """Mean RelMSE (and SSIM, reported beside it; None for frames under SSIM's window) of ``method`` with ``params`` over ``frames``
+    (`load_validation`), overall and per sampling rate; a sequence entry runs through the sequence
+    driver (state carried, neighbours read) and counts each of its frames. A non-finite output
+    scores RelMSE ``inf`` (never the best)."""
     from . import metrics
     from .api import inference_fn
     from .sequence import run
 
     fn = inference_fn(method)
     errs: dict[Any, list[float]] = {}
+    ssims: list[float] = []
 
     def score(out, ref, spp):
         e = float(metrics.relmse(out, ref))
         errs.setdefault(spp, []).append(e if math.isfinite(e) else math.inf)
+        if min(np.shape(ref)[-3:-1]) >= metrics.SSIM_WIN:  # smaller frames have no SSIM
+            ssims.append(float(metrics.ssim(jnp.nan_to_num(jnp.asarray(out, jnp.float32)), ref)))
 
     for f in frames:
         if "frames" in f:
@@ -344,7 +360,7 @@ def validate(method: Any, params: Any, frames: list[dict]) -> dict:
         else:
             score(fn(params, f["buffers"]), f["reference"], f["spp"])
     every = [e for es in errs.values() for e in es]
-    return {"relmse": float(np.mean(every)),
+    return {"relmse": float(np.mean(every)), "ssim": float(np.mean(ssims)) if ssims else None,
             "per_spp": {str(k): float(np.mean(v))
                     for k, v in sorted(errs.items(), key=lambda kv: (kv[0] is None, kv[0] or 0))}}
 

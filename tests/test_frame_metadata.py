@@ -286,3 +286,22 @@ def test_training_validation_steps_temporal_methods_through_sequences(tmp_path):
     assert got == pytest.approx(want, rel=1e-6)
     per_frame = np.mean([float(metrics.relmse(np.asarray(f.color), r)) for f, r in zip(frames, refs)])
     assert abs(got - per_frame) > 1e-4  # the state changed frames 1 and 2
+
+
+def test_validation_from_a_whole_video_export_is_the_same_sequence(tmp_path):
+    """A validation export of whole renders (the GPU machine has no OpenImageIO) keeps the video:
+    one entry, its frames in order through the driver, the folder's score to float16 rounding."""
+    from jaxdenoise import pipeline
+    from jaxdenoise.train import load_validation, validate
+
+    frames = _frames(3)
+    refs = [synthetic_frame(12, 12, seed=60 + i).color for i in range(3)]
+    _write_sequence(tmp_path / "val" / "seq", frames, refs)
+    cache = pipeline.build_cache(tmp_path / "val", ["color"], tmp_path / "cache")
+    cache.export(tmp_path / "val.npz", n=100, whole=True)
+    with registered("ema", "fake_recurrent"):
+        m = get("ema")
+        folder, export = load_validation(m, tmp_path / "val"), load_validation(m, tmp_path / "val.npz")
+        assert len(export) == 1 and len(export[0]["frames"]) == 3
+        want, got = validate(m, {}, folder)["relmse"], validate(m, {}, export)["relmse"]
+    assert got == pytest.approx(want, rel=2e-3)

@@ -128,6 +128,28 @@ def test_export_is_compact_and_round_trips(folder, tmp_path):
     assert pipeline.load_export(tmp_path / "seq.npz").items["color"].shape == (seq["count"], 7, 8, 8, 3)
 
 
+def test_whole_video_export_samples_sequences_like_the_cache(folder, tmp_path):
+    """A whole-render export keeps the videos (frames in order, noise instances): sequences drawn
+    from it with a seed are the cache's draws (to float16 / 8-bit rounding), camera stops included;
+    ``instances=1`` keeps one instance per frame, and then no stop is possible."""
+    cache = pipeline.build_cache(folder, ["albedo", "depth"], tmp_path / "cache", spps=(1,))
+    summary = cache.export(tmp_path / "vid.npz", n=10**6, whole=True, spps=(1,))
+    assert summary["count"] == 16  # 8 frames x 2 instances, not the number that would fit
+    ex = pipeline.load_export(tmp_path / "vid.npz")
+    assert [sorted(v) for v in ex.videos] == [list(range(8))] and all(len(ids) == 2 for ids in ex.videos[0].values())
+    for kw in ({"augment": False}, {"stop_probability": 1.0}):
+        a = cache.sequences(6, 8, np.random.default_rng(5), **kw)
+        b = ex.sequences(6, 8, np.random.default_rng(5), **kw)
+        assert a.keys() == b.keys()
+        np.testing.assert_allclose(b["color"], a["color"], rtol=1e-3)
+        np.testing.assert_array_equal(b["depth"], a["depth"])
+    one = pipeline.load_export(tmp_path / "one.npz") if cache.export(
+        tmp_path / "one.npz", n=100, whole=True, spps=(1,), instances=1)["count"] == 8 else None
+    assert one is not None and all(len(ids) == 1 for ids in one.videos[0].values())
+    s = one.sequences(10, 8, np.random.default_rng(0), stop_probability=1.0, augment=False)
+    assert np.all(np.diff(s["depth"][:, :, 0, 0, 0], axis=1) == 1)  # 7 consecutive frames, no stop
+
+
 def test_cache_fills_a_left_out_constant_buffer_and_keeps_the_camera(tmp_path):
     """A render without roughness (data_gen leaves a constant buffer out) gets the constant the
     method documents, the frame is listed as filled, and the camera matrices reach the crops."""

@@ -29,6 +29,7 @@ loop (a rolled ``lax.scan`` is ~25x slower to differentiate on a CPU: `jaxdenois
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from typing import Any
 
@@ -328,30 +329,44 @@ def make_dataset(data_dir, config: Config, *, progress: bool = True):
                               fill={"roughness": config.missing_roughness})
 
 
-def _derive(item: dict, config: Config) -> dict:
-    """Add the view-space inputs of a crop (before augmentation: a quarter turn of the image then
-    turns the view-space normal with it, `jaxdenoise.pipeline.augment`) and drop what they came from."""
-    out = {k: np.asarray(item[k]) for k in ("color", "albedo", "reference", "spp")}
-    if "roughness" in config.aux:
-        out["roughness"] = np.asarray(item["roughness"])
+@functools.partial(jax.jit, static_argnums=1)
+def _view_inputs(seq: dict, config: Config) -> dict:
+    """The view-space inputs of a batch of sequence crops (``(B, T, H, W, .)`` with their cameras)."""
+    out = {}
     if "normal" in config.aux:
-        out["normal_view"] = np.asarray(view.view_normals(item["normal"], item["world_to_camera"]))
+        out["normal_view"] = view.view_normals(seq["normal"], seq["world_to_camera"])
     if "depth" in config.aux:
-        out["depth_linear"] = np.asarray(view.linear_depth(item["position"], item["normal"], item["world_to_camera"]))
+        out["depth_linear"] = view.linear_depth(seq["position"], seq["normal"], seq["world_to_camera"])
+    return out
+
+
+_inputs = jax.jit(inputs, static_argnums=1)
+
+
+def _derive(seq: dict, config: Config) -> dict:
+    """Add the view-space inputs of a batch of crops (before augmentation: a quarter turn of the
+    image then turns the view-space normal with it, `jaxdenoise.pipeline.augment`) and drop what they
+    came from."""
+    out = {k: np.asarray(seq[k]) for k in ("color", "albedo", "reference", "spp")}
+    if "roughness" in config.aux:
+        out["roughness"] = np.asarray(seq["roughness"])
+    cam = {k: seq[k] for k in ("normal", "position", "world_to_camera") if k in seq}
+    out.update({k: np.asarray(v) for k, v in _view_inputs(cam, config).items()})
     return out
 
 
 def batch(dataset, step: int, config: Config, rng: np.random.Generator) -> dict:
     """``train_batch`` sequence crops of ``train_frames`` frames (Sec. 4.3: camera stops, backward
-    playback, quarter turns, mirrors, colour modulation), as network inputs."""
+    playback, quarter turns, mirrors, colour modulation), as network inputs. Computed on the host's
+    CPU (jitted there), beside an accelerator's training step."""
     from ..pipeline import augment
 
     seq = dataset.sequences(config.train_batch, config.train_crop, rng, frames=config.train_frames,
                             stop_probability=config.stop_probability, augment=False)
-    items = []
-    for i in range(config.train_batch):
-        item = _derive({k: v[i] for k, v in seq.items()}, config)
-        items.append(augment(item, rng, reverse=True))
-    stacked = {k: np.stack([it[k] for it in items]) for k in items[0]}
-    x = np.asarray(inputs(stacked, config))
+    with jax.default_device(jax.local_devices(backend="cpu")[0]):
+        derived = _derive(seq, config)
+        items = [augment({k: v[i] for k, v in derived.items()}, rng, reverse=True)
+                 for i in range(config.train_batch)]
+        stacked = {k: np.stack([it[k] for it in items]) for k in items[0]}
+        x = np.asarray(_inputs(stacked, config))
     return {"x": x, "albedo": stacked["albedo"], "reference": stacked["reference"]}
