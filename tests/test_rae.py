@@ -63,6 +63,18 @@ def test_any_size(h, w):
     assert y.shape == (h, w, 3) and bool(jnp.all(jnp.isfinite(y))) and float(jnp.min(y)) >= 0
 
 
+def test_albedo_above_one_modulates_as_one():
+    """data_gen's albedo (``eval_diffuse_reflectance``) exceeds 1 on glossy conductors; an export
+    stores [0, 1]: the network sees, and multiplies back, the clipped value (exact)."""
+    p = rae.init(jax.random.PRNGKey(0), TINY)
+    b = _frame(9, 7, seed=3)
+    a = np.asarray(b.albedo).copy()
+    a[2:5, 1:4] = [1.0, 1.0, 1.0]
+    over = a.copy()
+    over[2:5, 1:4] = [1.7, 1.4, 1.2]
+    np.testing.assert_array_equal(rae.apply(p, b.replace(albedo=over), TINY), rae.apply(p, b.replace(albedo=a), TINY))
+
+
 def test_step_over_a_sequence_equals_the_training_pass():
     """Stepping frame by frame through the causal surface gives the training-time unrolled pass's
     predictions (clamped at 0 as `step` returns them) within 1e-5 relative."""

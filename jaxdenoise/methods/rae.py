@@ -198,7 +198,7 @@ def inputs(frame: Any, config: Config) -> jax.Array:
     get = lambda f: _get(frame, f)
     c = jnp.asarray(get("color"), jnp.float32)
     c = jnp.where(jnp.isfinite(c), jnp.maximum(c, 0.0), 0.0)
-    demod = color.demodulate(c, get("albedo"), config.albedo_eps)
+    demod = color.demodulate(c, _albedo(get("albedo")), config.albedo_eps)
     parts = [color.gamma(demod, 1.0 / config.power)]
     has = (lambda f: f in frame) if isinstance(frame, dict) else (lambda f: False)
     if "normal" in config.aux:
@@ -225,9 +225,16 @@ def normalized_depth(d: jax.Array) -> jax.Array:
     return jnp.where(hit, d / jnp.maximum(mean, 1e-12), 0.0)
 
 
+def _albedo(albedo: Any) -> jax.Array:
+    """The albedo that (de)modulates, clipped to [0, 1] (ours, docs/methods/rae.md): data_gen's
+    albedo is ``eval_diffuse_reflectance``, which exceeds 1 on glossy conductors, and an export
+    stores albedo as 8 bits of [0, 1]; the same clipped value divides and multiplies back."""
+    return jnp.clip(jnp.asarray(albedo, jnp.float32), 0.0, 1.0)
+
+
 def _output(y: jax.Array, albedo: Any, config: Config) -> jax.Array:
     """Network output (0.2-power illumination) -> HDR image, remodulated (Sec. 3.2)."""
-    return color.remodulate(color.inv_gamma(y, 1.0 / config.power), albedo, config.albedo_eps)
+    return color.remodulate(color.inv_gamma(y, 1.0 / config.power), _albedo(albedo), config.albedo_eps)
 
 
 # -- the causal surface ----------------------------------------------------------------------------
