@@ -125,7 +125,11 @@ def test_export_is_compact_and_round_trips(folder, tmp_path):
     np.testing.assert_allclose(b["albedo"], np.clip(b["color"] / 1000, 0, 1), atol=1 / 255)
     np.testing.assert_allclose(b["normal"][..., 2], 1.0, atol=1 / 255)
     seq = cache.export(tmp_path / "seq.npz", n=4, size=8, rng=np.random.default_rng(0), frames=7)
-    assert pipeline.load_export(tmp_path / "seq.npz").items["color"].shape == (seq["count"], 7, 8, 8, 3)
+    ex = pipeline.load_export(tmp_path / "seq.npz")
+    assert ex.items["color"].shape == (seq["count"], 7, 8, 8, 3)
+    s = ex.sequences(3, 6, np.random.default_rng(0), stop_probability=1.0, augment=False)
+    assert s["color"].shape == (3, 7, 6, 6, 3)  # sub-windows of the exported sequence crops
+    assert np.all(np.diff(s["depth"][:, :, 0, 0, 0], axis=1) == 1)  # one instance per frame: no stop
 
 
 def test_whole_video_export_samples_sequences_like_the_cache(folder, tmp_path):
