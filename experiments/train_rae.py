@@ -18,7 +18,9 @@ Steps (docs/results/rae.md has the commands as run and what they gave):
    last weights (one tar each) and ``summary.json``; the ablations' weights stay in ``--runs`` (a
    device machine sends back 64 MiB at most). Each run resumes from its checkpoint when started
    again.
-3. ``one`` is what ``run`` starts per run (a separate process, so that runs overlap on the device).
+3. ``one`` is what ``run`` starts per run (a separate process, so that runs overlap on the device);
+   run by hand it also continues a run's weights elsewhere (``--init-from``, ``--lr``), e.g. on this
+   CPU from the EXR folders (``--train data/rae_train --val data/rae_val``).
 """
 from __future__ import annotations
 
@@ -66,9 +68,10 @@ def one(args) -> None:
 
     cfg = dataclasses.replace(rae.Config(train_crop=args.crop), **VARIANTS[args.variant])
     t = time.perf_counter()
+    lr = {} if args.lr is None else {"learning_rate": args.lr}
     s = train.train("rae", args.train, Path(args.runs) / args.name, resume=True, steps=args.max_steps, seed=args.seed,
-                    progress=False, config=cfg, val_data=args.val, validate_every=args.validate_every,
-                    checkpoint_every=args.validate_every, time_limit=args.seconds)
+                    progress=False, config=cfg, val_data=args.val, val_spps=[1], validate_every=args.validate_every,
+                    checkpoint_every=args.validate_every, time_limit=args.seconds, init_from=args.init_from, **lr)
     rec = {"variant": args.variant, "seed": args.seed, "steps": s["steps_done"], "seconds": time.perf_counter() - t,
            "final_loss": s["final_loss"], "best": s.get("best"), "crop": args.crop, "params": rae.num_params(cfg),
            "crops_seen": s["steps_done"] * cfg.train_batch,
@@ -165,6 +168,8 @@ def main() -> None:
     o.add_argument("--seed", type=int, default=0)
     o.add_argument("--crop", type=int, default=64)
     o.add_argument("--seconds", type=float, default=None)
+    o.add_argument("--init-from", default=None, help="weights folder to continue from (fine-tuning)")
+    o.add_argument("--lr", type=float, default=None, help="Adam's base rate (default: the module's TRAIN)")
     args = ap.parse_args()
     {"prepare": prepare, "run": run, "one": one}[args.cmd](args)
 
