@@ -335,10 +335,10 @@ def _validation_from_export(method: Any, path: Path, wanted: set | None) -> list
 
 
 def validate(method: Any, params: Any, frames: list[dict]) -> dict:
-    """Mean RelMSE (and SSIM, reported beside it; None for frames under SSIM's window) of ``method`` with ``params`` over ``frames``
-    (`load_validation`), overall and per sampling rate; a sequence entry runs through the sequence
-    driver (state carried, neighbours read) and counts each of its frames. A non-finite output
-    scores RelMSE ``inf`` (never the best)."""
+    """Mean RelMSE of ``method`` with ``params`` over ``frames`` (`load_validation`), overall and
+    per sampling rate, and mean SSIM beside it (None when every frame is under SSIM's window); a
+    sequence entry runs through the sequence driver (state carried, neighbours read) and counts each
+    of its frames. A non-finite output scores RelMSE ``inf`` (never the best)."""
     from . import metrics
     from .api import inference_fn
     from .sequence import run
