@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxdenoise import pipeline, view
+from jaxdenoise import color, pipeline, view
 from jaxdenoise.buffers import Buffers, BuffersError
 from jaxdenoise.methods import get, rae
 
@@ -73,6 +73,25 @@ def test_albedo_above_one_modulates_as_one():
     over = a.copy()
     over[2:5, 1:4] = [1.7, 1.4, 1.2]
     np.testing.assert_array_equal(rae.apply(p, b.replace(albedo=over), TINY), rae.apply(p, b.replace(albedo=a), TINY))
+
+
+def test_untextured_pixels_are_not_demodulated():
+    """An albedo of 0 (a visible light, the background, a black material) (de)modulates as 1: the
+    network's colour input there is ``(colour / (1 + eps))^0.2``, not ``(colour / eps)^0.2``; an
+    albedo just above half an 8-bit step is still divided out."""
+    b = _frame(6, 5, seed=4)
+    a = np.asarray(b.albedo).copy()
+    a[1:3, 2:4] = 0.0
+    a[4, 0] = [0.0, 0.003, 0.0]
+    x = np.asarray(rae.inputs(b.replace(albedo=a), TINY))
+    c = np.asarray(b.color)
+    eps = color.ALBEDO_EPS_DEFAULT
+    np.testing.assert_allclose(x[1:3, 2:4, :3], (c[1:3, 2:4] / (1 + eps)) ** 0.2, rtol=1e-5)
+    np.testing.assert_allclose(x[4, 0, :3], (c[4, 0] / (a[4, 0] + eps)) ** 0.2, rtol=1e-5)
+    ones = a.copy()
+    ones[1:3, 2:4] = 1.0
+    y = jnp.asarray(x[..., :3])  # any network output: remodulation multiplies back what divided
+    np.testing.assert_array_equal(rae._output(y, a, TINY), rae._output(y, ones, TINY))
 
 
 def test_step_over_a_sequence_equals_the_training_pass():

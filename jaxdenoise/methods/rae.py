@@ -225,11 +225,19 @@ def normalized_depth(d: jax.Array) -> jax.Array:
     return jnp.where(hit, d / jnp.maximum(mean, 1e-12), 0.0)
 
 
+# An albedo below half an 8-bit step in every channel is "no texture" (ours, docs/methods/rae.md).
+UNTEXTURED = 0.5 / 255.0
+
+
 def _albedo(albedo: Any) -> jax.Array:
-    """The albedo that (de)modulates, clipped to [0, 1] (ours, docs/methods/rae.md): data_gen's
+    """The albedo that (de)modulates (ours, docs/methods/rae.md): clipped to [0, 1] (data_gen's
     albedo is ``eval_diffuse_reflectance``, which exceeds 1 on glossy conductors, and an export
-    stores albedo as 8 bits of [0, 1]; the same clipped value divides and multiplies back."""
-    return jnp.clip(jnp.asarray(albedo, jnp.float32), 0.0, 1.0)
+    stores albedo as 8 bits of [0, 1]), and 1 where every channel is below `UNTEXTURED` (emitters,
+    the background and black materials have no texture to divide out: dividing by ``0 + eps``
+    would scale a visible light 316x above its neighbours, and a network's blur across that edge
+    comes back as outliers 100-1000x the reference). The same value divides and multiplies back."""
+    a = jnp.clip(jnp.asarray(albedo, jnp.float32), 0.0, 1.0)
+    return jnp.where(jnp.max(a, axis=-1, keepdims=True) < UNTEXTURED, 1.0, a)
 
 
 def _output(y: jax.Array, albedo: Any, config: Config) -> jax.Array:
