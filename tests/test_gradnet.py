@@ -2,6 +2,7 @@
 post-process, the lambda schedule, and that training never reads a reference."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import jax
@@ -141,13 +142,16 @@ def test_first_order_weights_against_numpy():
 
 def test_postprocess_keeps_an_output_that_already_agrees_with_the_base():
     """Eq. 13 with out == base is the identity (tolerance 1e-5 relative: float32 blur ratios); a
-    uniformly scaled output is scaled back to the base's local mean."""
+    uniformly scaled output is scaled back to the base's local mean. Both properties hold for any
+    kernel: a radius-7 Gaussian keeps the test's compile short (the paper's radius-45 kernel, 91
+    shifted slices per axis, takes ~14 s to compile; the stability suite runs it)."""
+    cfg = dataclasses.replace(CFG, pp_radius=7, pp_sigma=3.0)
     rng = np.random.default_rng(4)
     base = jnp.asarray(rng.gamma(1.0, 1.0, (40, 50, 3)).astype(np.float32))
-    np.testing.assert_allclose(np.asarray(G.postprocess(base, base, CFG)), np.asarray(base), rtol=1e-5)
-    np.testing.assert_allclose(np.asarray(G.postprocess(base * 2.0, base, CFG)), np.asarray(base), rtol=1e-5)
+    np.testing.assert_allclose(np.asarray(G.postprocess(base, base, cfg)), np.asarray(base), rtol=1e-5)
+    np.testing.assert_allclose(np.asarray(G.postprocess(base * 2.0, base, cfg)), np.asarray(base), rtol=1e-5)
     zero = jnp.zeros_like(base)  # guard: a black output stays black (no 0/0)
-    assert bool(jnp.all(G.postprocess(zero, base, CFG) == 0))
+    assert bool(jnp.all(G.postprocess(zero, base, cfg) == 0))
 
 
 def test_lambda_schedule_in_steps():

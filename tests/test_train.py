@@ -223,6 +223,7 @@ def _run(code: str, env_extra: dict) -> str:
     return r.stdout.strip().splitlines()[-1]
 
 
+@pytest.mark.slow  # two subprocesses that each compile the trainer: ~13 s (the default run's 10-minute budget)
 def test_two_devices_give_the_same_loss_trajectory_as_one(dataset, tmp_path):
     """Data parallel over 2 forced CPU devices: the batch (2 scenes x 2 spp = 4 crops) is split in
     two, the gradients reduced by XLA; the 3-step loss history equals the single-device one within
