@@ -295,6 +295,7 @@ def test_parameter_groups_alternate_with_their_own_optimizers(tmp_path):
         assert float(jnp.sum(jnp.abs(jnp.asarray(a["norm"])))) == 0.0  # FROZEN: never trained
 
 
+@pytest.mark.slow  # a training-scale check (the default run's 10-minute budget)
 def test_small_conv_net_overfits_four_crops(tmp_path):
     """A small U-Net (jaxdenoise.nn) through the generic trainer memorizes 4 noisy -> clean crops:
     the loss falls by more than 100x in 400 Adam steps (measured: 166x)."""
