@@ -375,6 +375,17 @@ def summary_line(summary: dict) -> str:
     return line
 
 
+def _saved_config(module: Any, meta: dict) -> Any:
+    """A checkpoint's config with the fields it predates filled by their defaults (a config field
+    added later, with a default that keeps the old behaviour, must not orphan older runs and
+    weights); as saved when it does not build (an unknown key: then it differs, as it should)."""
+    saved = meta.get("config")
+    try:
+        return checkpoint.config_to_dict(checkpoint.config_from_dict(module.Config, saved))
+    except (TypeError, ValueError):
+        return saved
+
+
 def train(method_name: str, data_dir: str | Path, out_dir: str | Path, *, resume: bool = False,
           steps: int | None = None, seed: int = 0, progress: bool = True, config: Any = None,
           train_config: TrainConfig | None = None, dataset: Any = None, val_data: str | Path | None = None,
@@ -428,7 +439,7 @@ def train(method_name: str, data_dir: str | Path, out_dir: str | Path, *, resume
         loaded, meta = checkpoint.load(init_from)
         # training-data fields (``train_*``: crops, batch) may differ; the model's may not
         model = lambda c: {k: v for k, v in c.items() if not k.startswith("train_")}
-        if meta.get("config") and model(meta["config"]) != model(cfg_dict):
+        if meta.get("config") and model(_saved_config(module, meta)) != model(cfg_dict):
             raise TrainError(f"{init_from}: weights were trained with config {meta['config']}; this run is "
                              f"{method_name!r} with {cfg_dict}")
         params = restore_like(params, loaded, where=str(init_from))
@@ -441,7 +452,7 @@ def train(method_name: str, data_dir: str | Path, out_dir: str | Path, *, resume
     ckpt_dir = out_dir / CHECKPOINT_DIR
     if resume and (ckpt_dir / checkpoint.PARAMS_FILE).is_file():
         loaded, meta = checkpoint.load(ckpt_dir)
-        if meta.get("method") != method_name or meta.get("config") != cfg_dict:
+        if meta.get("method") != method_name or _saved_config(module, meta) != cfg_dict:
             raise TrainError(f"{ckpt_dir}: checkpoint is for method {meta.get('method')!r} with config "
                              f"{meta.get('config')}; this run is {method_name!r} with {cfg_dict}. "
                              "Use a new --out or the same settings.")

@@ -74,6 +74,13 @@ def test_resume_with_other_config_fails(dataset, tmp_path):
     other = dataclasses.replace(CFG, hidden=(4,))
     with pytest.raises(TrainError, match="checkpoint is for"):
         train("lbf", dataset, tmp_path / "run", steps=2, config=other, progress=False, resume=True)
+    # a checkpoint saved before a config field existed (its default keeps the old behaviour) resumes
+    cfile = tmp_path / "run" / "checkpoint" / checkpoint.CONFIG_FILE
+    meta = json.loads(cfile.read_text())
+    field = next(f.name for f in dataclasses.fields(lbf.Config) if getattr(CFG, f.name) == getattr(lbf.Config(), f.name))
+    del meta["config"][field]
+    cfile.write_text(json.dumps(meta))
+    assert train("lbf", dataset, tmp_path / "run", steps=2, config=CFG, progress=False, resume=True)["steps_this_run"] == 1
 
 
 def test_missing_data_and_bad_optimizer_raise(tmp_path, dataset):
