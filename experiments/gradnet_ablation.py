@@ -1,6 +1,8 @@
 """GradNet ablations at an equal, short budget. ``--study loss`` (issue 15, item 6): the full loss
 L_all against L_data + L_grad (Fig. 12), and the mu-law (mu = 16) against log(1 + |I|) compression
-(Fig. 17, convergence curves). ``--study decoder``: the decoder as first built (three deconvolutions,
+(Fig. 17, convergence curves); ``--study converged``: the first pair at the full schedule (two
+58-minute runs; the "L_all" one is the shipped weights' run: its folder can be copied in to resume
+it as finished). ``--study decoder``: the decoder as first built (three deconvolutions,
 the last one giving the output) against the input-skip decoder the shipped network uses, each at the
 paper's learning rate (1e-4) and at ours (1e-3, gradient norm clipped to 1) (docs/methods/gradnet.md).
 Every variant trains with the same code, data, seed and steps (`jaxdenoise.train.train`), validated
@@ -10,6 +12,8 @@ curves and the final scores as JSON and a plot.
 
     python experiments/gradnet_ablation.py --study loss --data data/gradnet_train --val data/gradnet_val \
         --steps 1000 --validate-every 200 --out docs/results/gradnet_ablation
+    python experiments/gradnet_ablation.py --study converged --data data/gradnet_train --val data/gradnet_val \
+        --epoch-patches 2560 --steps 32000 --validate-every 1000 --val-spps 64 --out docs/results/gradnet_ablation_converged
     python experiments/gradnet_ablation.py --study decoder --data data/gradnet_train --val data/gradnet_val \
         --steps 1000 --validate-every 200 --out docs/results/gradnet_decoder
 """
@@ -30,6 +34,10 @@ from jaxdenoise.train import train  # noqa: E402
 PAPER_LR = {"learning_rate": 1e-4, "clip_norm": None}  # Sec. 5.2 (the trainer's other defaults: gradnet.TRAIN)
 # study -> variant -> (method config overrides, trainer overrides)
 STUDIES = {
+    "converged": {  # Fig. 12 at the full schedule (--epoch-patches 2560 --steps 32000): L_all is the shipped run
+        "L_all (mu-law)": ({}, {}),
+        "L_data + L_grad (mu-law)": ({"first_order": False}, {}),
+    },
     "loss": {
         "L_all (mu-law)": ({}, {}),
         "L_data + L_grad (mu-law)": ({"first_order": False}, {}),

@@ -70,10 +70,16 @@ def _nonzero_output(params):
     return {**params, "out": out}
 
 
-def test_output_layer_starts_at_zero_so_the_network_starts_at_the_base_image():
+@pytest.mark.parametrize("head", [0, 4])
+def test_output_layer_starts_at_zero_so_the_network_starts_at_the_base_image(head):
+    """With or without the full-resolution head (`Config.head_width`): its last conv is zero too, so
+    adding it to a trained network changes nothing until it is trained."""
+    cfg = dataclasses.replace(CFG, head_width=head)
     f = _frame(8, 8, seed=4)
-    y, _, x = G.predict(G.init(jax.random.PRNGKey(2), CFG), f, CFG)
+    params = G.init(jax.random.PRNGKey(2), cfg)
+    y, _, x = G.predict(params, f, cfg)
     np.testing.assert_array_equal(np.asarray(y), np.asarray(x["tb"]))
+    assert ("head" in params) == bool(head) and ("head" in G.param_groups(cfg)["autoencoder"]) == bool(head)
 
 
 def test_losses_against_a_hand_computation_on_4x4():
@@ -180,17 +186,20 @@ def test_training_never_reads_a_reference():
 @pytest.mark.slow  # 20 s: two full gradients
 def test_groups_are_trained_separately():
     """The autoencoder's loss has no gradient on the G-branch (Eq. 10 holds G fixed) and Eq. 11 none
-    on the autoencoder, so the alternating updates touch only their own group."""
+    on the autoencoder, so the alternating updates touch only their own group (the full-resolution
+    head, `Config.head_width`, included: it belongs to the autoencoder)."""
+    cfg = dataclasses.replace(CFG, head_width=4)
     f = {**_frame(16, 16, seed=8, lead=(2,)), "lambda": np.float32(1.0)}
-    params = _nonzero_output(G.init(jax.random.PRNGKey(3), CFG))
-    ga = jax.grad(lambda p: G.loss(p, f, CFG, group="autoencoder"))(params)
-    gg = jax.grad(lambda p: G.loss(p, f, CFG, group="gbranch"))(params)
+    params = _nonzero_output(G.init(jax.random.PRNGKey(3), cfg))
+    params["head"] = jax.tree_util.tree_map(lambda a: a + 0.1, params["head"])  # its last conv starts at 0
+    ga = jax.grad(lambda p: G.loss(p, f, cfg, group="autoencoder"))(params)
+    gg = jax.grad(lambda p: G.loss(p, f, cfg, group="gbranch"))(params)
     norm = lambda t: float(sum(jnp.sum(jnp.abs(v)) for v in jax.tree_util.tree_leaves(t)))  # noqa: E731
-    assert norm(ga["gbranch"]) == 0.0 and norm(gg["data"]) + norm(gg["dec"]) + norm(gg["out"]) == 0.0
-    for k in ("data", "grad", "res", "dec", "out"):
+    assert norm(ga["gbranch"]) == 0.0 and norm(gg["data"]) + norm(gg["dec"]) + norm(gg["out"]) + norm(gg["head"]) == 0.0
+    for k in ("data", "grad", "res", "dec", "out", "head"):
         assert norm(ga[k]) > 0, k
     assert norm(gg["gbranch"]) > 0
-    assert set(G.param_groups(CFG)["autoencoder"]) | set(G.param_groups(CFG)["gbranch"]) == set(params)
+    assert set(G.param_groups(cfg)["autoencoder"]) | set(G.param_groups(cfg)["gbranch"]) == set(params)
 
 
 def test_illegal_renders_are_found():

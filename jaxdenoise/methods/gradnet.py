@@ -81,6 +81,7 @@ class Config:
     lambda_epochs: int = 5  # Eq. 14: lambda = 0 up to this epoch
     residual_output: bool = True  # output = T(I_b) + decoder (ours, docs/methods/gradnet.md)
     input_skip: bool = True  # the decoder's last level joins the full-resolution inputs (ours, docs/methods/gradnet.md)
+    head_width: int = 0  # > 0: a full-resolution hidden layer beside the output conv (ours, docs/methods/gradnet.md)
     postprocess: bool = True  # Eq. 13 (Sec. 4.5); off for the ablation
     pp_radius: int = 45  # Sec. 4.5
     pp_sigma: float = 15.0  # Sec. 4.5
@@ -93,6 +94,8 @@ class Config:
     def __post_init__(self) -> None:
         if len(self.widths) != 3 or any(int(w) < 1 for w in self.widths):
             raise ValueError(f"gradnet: config.widths must be 3 positive ints (three stride-2 convs), got {self.widths}")
+        if int(self.head_width) < 0 or (self.head_width and not self.input_skip):
+            raise ValueError(f"gradnet: config.head_width must be >= 0 and needs input_skip, got {self.head_width}")
         if self.compression not in ("mu-law", "log"):
             raise ValueError(f"gradnet: config.compression must be 'mu-law' or 'log', got {self.compression!r}")
         for name in ("mu", "sigma_b2", "pp_sigma", "epoch_patches", "train_batch", "train_crop"):
@@ -118,7 +121,7 @@ WEIGHTS = "gradnet"
 
 def param_groups(config: Config) -> dict:
     """The autoencoder and the G-branch, trained in alternation (Sec. 5.2)."""
-    ae = ("data", "grad", "res", "dec", "out") if config.input_skip else ("data", "grad", "res", "dec")
+    ae = ("data", "grad", "res", "dec") + (("out",) if config.input_skip else ()) + (("head",) if config.head_width else ())
     return {"autoencoder": ae, "gbranch": ("gbranch",)}
 
 
@@ -217,6 +220,9 @@ def _layers(config: Config) -> dict:
     }
     if config.input_skip:  # zero-initialised: training starts exactly at T(I_b) (He init diverged, measured)
         layers["out"] = nn.Conv(3, 3, w_init=lambda key, shape: jnp.zeros(shape, jnp.float32))
+    if config.head_width:  # nonlinear in the full-resolution inputs; zero-initialised last conv (adds 0 at start)
+        layers["head"] = nn.serial(nn.Conv(int(config.head_width), 3, w_init=he), _act(config),
+                                   nn.Conv(3, 3, w_init=lambda key, shape: jnp.zeros(shape, jnp.float32)))
     return layers
 
 
@@ -240,6 +246,8 @@ def init(key, config: Config) -> dict:
     params["gbranch"] = L["gbranch"][0](next(keys), (-1, 8, 8, 3 + N_FEAT))[1]
     if config.input_skip:  # decoder + data-branch input + gradient-branch input
         params["out"] = L["out"][0](next(keys), (-1, 8, 8, w[0] + 3 + N_FEAT + 6))[1]
+    if config.head_width:
+        params["head"] = L["head"][0](next(keys), (-1, 8, 8, w[0] + 3 + N_FEAT + 6))[1]
     return params
 
 
@@ -267,7 +275,10 @@ def forward(params: dict, x: dict, config: Config) -> jax.Array:
         lvl = 2 - i
         h = L["dec"][i][1](params["dec"][str(i)], jnp.concatenate([h, skips_d[lvl], skips_g[lvl]], -1))
     if config.input_skip:
-        h = L["out"][1](params["out"], jnp.concatenate([h, x["tb"], x["feat"], x["tdx"], x["tdy"]], -1))
+        c = jnp.concatenate([h, x["tb"], x["feat"], x["tdx"], x["tdy"]], -1)
+        h = L["out"][1](params["out"], c)
+        if config.head_width:
+            h = h + L["head"][1](params["head"], c)
     return x["tb"] + h if config.residual_output else h
 
 
