@@ -31,7 +31,7 @@ def extend(src: Path, dst: Path, head_width: int, seed: int, data: str, batches:
     The autoencoder group's Adam step count is kept (its bias correction is ~1 by then), so the new
     layer's moments need values of their own: m = 0 and v = the mean squared gradient of the head
     over ``batches`` training batches (with v = 0 the first update was 16x too large and the
-    validation error went from 0.02 to 0.8 in one step, measured)."""
+    validation error went from 0.013 to 0.82 in one step, measured)."""
     state, meta = checkpoint.load(src)
     module = get("gradnet").module
     old = checkpoint.config_from_dict(module.Config, meta["config"])
