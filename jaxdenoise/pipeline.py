@@ -33,10 +33,13 @@ same window of 7 consecutive frames of one noisy video.
 (float16 for radiance-like and unbounded fields, 8-bit for bounded features as Chaitanya 2017
 Sec. 3.2 stores them: normals, albedo, visibility, roughness), at most ``max_mib`` (60 by default):
 the number that fits is stated in the file and returned, so a run can move to another machine
-(`ExportedCache` samples from it with the same interface).
+(`ExportedCache` samples from it with the same interface, and `render` / `subset` / ``len`` work on
+both). ``max_mib`` counts the arrays before compression. A field a method never reads can be left
+out (``leave_out``: GradNet's loss has no reference).
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import hashlib
 import json
@@ -169,12 +172,15 @@ def _key(fields: Sequence[str], files: list[Path]) -> str:
 
 def build_cache(data_dir: str | os.PathLike, fields: Sequence[str], cache_dir: str | os.PathLike, *,
                 spps: Sequence[int] | None = None, progress: bool = False,
-                fill: dict[str, float] | None = None) -> "Cache":
+                fill: dict[str, float] | None = None, repair: str | None = None) -> "Cache":
     """Decode the renders of ``data_dir`` (those at ``spps``, or all) for ``fields`` (``color``
     first, others in the given order) into ``cache_dir`` once; reuse it when nothing changed.
     ``fill`` names the constant a method documents for a field a render left out (data_gen leaves a
     constant buffer out, e.g. roughness in a scene whose BSDFs all share one); the frames filled are
-    listed in the index. Any other missing field is an error naming the file."""
+    listed in the index. Any other missing field is an error naming the file. A render with NaN/Inf
+    or negative radiance is an error naming the file and channel (`jaxdenoise.io.read_buffers`)
+    unless ``repair="zero"``: then its bad values are zeroed and each frame's index entry counts them
+    (``repaired``), so that a method can drop such renders (GradNet, Sec. 5.1)."""
     fill = dict(fill or {})
     from .data import discover, sequences
     from .io import read_buffers, read_image
@@ -190,7 +196,8 @@ def build_cache(data_dir: str | os.PathLike, fields: Sequence[str], cache_dir: s
     if not renders:
         raise FileNotFoundError(f"{data_dir}: no render" + (f" at spp {sorted(wanted)}" if wanted else ""))
     files = sorted({r.path for _, r in renders} | {s.reference for s, _ in renders})
-    folder = Path(cache_dir) / _key(fields + [f"fill:{k}={v}" for k, v in sorted(fill.items())], files)
+    folder = Path(cache_dir) / _key(fields + [f"fill:{k}={v}" for k, v in sorted(fill.items())]
+                                    + ([] if repair is None else [f"repair:{repair}"]), files)
     index_path = folder / "index.json"
     if index_path.is_file():
         return Cache(folder)
@@ -206,7 +213,7 @@ def build_cache(data_dir: str | os.PathLike, fields: Sequence[str], cache_dir: s
         if shot.reference not in names:
             names[shot.reference] = f"ref_{len(names):05d}.npy"
             _save_npy(folder / names[shot.reference], np.asarray(read_image(shot.reference), np.float32)[..., :3])
-        b, _ = read_buffers(r.path)
+        b, attrs = read_buffers(r.path, repair=repair)
         filled = [f for f in fields if getattr(b, f) is None and f in fill]
         if filled:
             b = b.replace(**{f: np.full(b.shape + (len(CHANNELS[f]),), fill[f], np.float32) for f in filled})
@@ -220,7 +227,7 @@ def build_cache(data_dir: str | os.PathLike, fields: Sequence[str], cache_dir: s
         label = f"{shot.folder.parent.name}/{shot.name}" if shot.frame is not None else shot.name
         frames.append({"array": name, "reference": names[shot.reference], "spp": int(r.spp), "shot": label,
                        "render": r.path.name, "sequence": str(shot.folder.parent) if shot.frame is not None else None,
-                       "frame": shot.frame, "filled": filled,
+                       "frame": shot.frame, "filled": filled, "repaired": int(sum(attrs.get("repaired", {}).values())),
                        **{m: np.asarray(getattr(b, m), np.float64).tolist() for m in MATRIX_FIELDS
                           if getattr(b, m) is not None}})
     index = {"version": CACHE_VERSION, "fields": fields, "data_dir": str(data_dir), "frames": frames,
@@ -290,6 +297,14 @@ class Cache:
         out._arrays = self._arrays
         out.videos = _videos(out.frames)
         return out
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def render(self, i: int) -> dict[str, np.ndarray]:
+        """Render ``i`` whole and unaugmented: every cached field, its reference and ``spp``."""
+        h, w = self.array(self.frames[i]["array"]).shape[:2]
+        return self._item(i, 0, 0, max(h, w))
 
     def array(self, name: str) -> np.ndarray:
         if name not in self._arrays:
@@ -372,14 +387,22 @@ class Cache:
 
     def export(self, path: str | os.PathLike, *, n: int, size: int = 0, rng: np.random.Generator | None = None,
                frames: int | None = None, max_mib: float = 60.0, spps: Sequence[int] | None = None,
-               whole: bool = False, instances: int | None = None) -> dict:
+               whole: bool = False, instances: int | None = None, leave_out: Sequence[str] = ()) -> dict:
         """Write ``n`` crops (or ``frames``-long sequence crops) without augmentation to one compact
         ``.npz`` (module docstring), keeping as many as fit in ``max_mib``; returns its summary
         (``count``, ``bytes``, ``per_item_bytes``), also stored in the file. ``spps`` restricts the
         renders; ``whole=True`` exports the first ``n`` renders whole (`whole`) instead of random
         crops (validation frames; training sets small enough to travel as they are; videos keep their
         order, frames and noise instances, at most ``instances`` of each frame, so that
-        `ExportedCache.sequences` samples them as `sequences` does here)."""
+        `ExportedCache.sequences` samples them as `sequences` does here). ``leave_out`` names fields
+        not written, e.g. ``("reference",)`` for a method whose loss never reads one (GradNet)."""
+        leave_out = set(leave_out)
+        unknown = sorted(leave_out - {*self.fields, "reference"})
+        if unknown:
+            raise ValueError(f"export: leave_out names {unknown}, which are not fields of {self.folder} "
+                             f"(it holds {['color', *self.fields, 'reference']})")
+        if "color" in leave_out:
+            raise ValueError("export: leave_out cannot hold 'color' (every method reads it)")
         if whole:
             every = self.whole(spps, instances)
             size = int(every["color"].shape[1])
@@ -389,6 +412,9 @@ class Cache:
             draw = lambda k: self.crops(k, size, rng, spps=spps, augment=False)
         else:
             draw = lambda k: self.sequences(k, size, rng, frames=frames, augment=False)
+        if leave_out:
+            full = draw
+            draw = lambda k: {f: v for f, v in full(k).items() if f not in leave_out}  # noqa: E731
         probe = _encode(draw(1))
         per_item = sum(a.nbytes for a in probe.values())
         fit = int(max_mib * 2**20 // max(per_item, 1))
@@ -398,7 +424,7 @@ class Cache:
         enc = _encode(draw(count))
         summary = {"count": count, "requested": int(n), "fit": fit, "per_item_bytes": per_item, "size": size,
                    "frames": frames, "fields": self.fields, "max_mib": max_mib, "whole": bool(whole),
-                   "instances": instances,
+                   "instances": instances, "left_out": sorted(leave_out),
                    "spps": None if spps is None else [int(s) for s in spps],
                    "source": str(json.loads((self.folder / "index.json").read_text())["data_dir"])}
         enc["summary"] = np.frombuffer(json.dumps(summary).encode(), np.uint8)
@@ -459,13 +485,35 @@ class ExportedCache:
                 self.items[k] = z[k]
         self.index = {k: z[k] for k in _INDEX if k in z.files}
         self.count = int(self.summary["count"])
+        self.videos = self._videos()
+
+    def _videos(self) -> list[dict]:
         if self.summary.get("frames"):  # fixed sequence crops: each is a video of one instance per frame
-            self.videos = [{t: [(i, t)] for t in range(int(self.summary["frames"]))} for i in range(self.count)]
-        elif "video" in self.index:  # whole renders that keep their videos (`Cache.whole`)
-            self.videos = _videos([{"sequence": None if v < 0 else int(v), "spp": float(s), "frame": int(t)}
-                                   for v, s, t in zip(self.index["video"], self.items["spp"], self.index["frame"])])
-        else:
-            self.videos = []
+            return [{t: [(i, t)] for t in range(int(self.summary["frames"]))} for i in range(self.count)]
+        if "video" in self.index:  # whole renders that keep their videos (`Cache.whole`)
+            return _videos([{"sequence": None if v < 0 else int(v), "spp": float(s), "frame": int(t)}
+                            for v, s, t in zip(self.index["video"], self.items["spp"], self.index["frame"])])
+        return []
+
+    def __len__(self) -> int:
+        return self.count
+
+    def subset(self, keep: Sequence[int]) -> "ExportedCache":
+        """The same export restricted to the items ``keep`` (as `Cache.subset`)."""
+        keep = np.asarray(keep, np.int64)
+        out = copy.copy(self)
+        out.items = {f: v[keep] for f, v in self.items.items()}
+        out.index = {k: v[keep] for k, v in self.index.items()}
+        out.count = int(keep.size)
+        out.videos = out._videos()
+        return out
+
+    def render(self, i: int) -> dict[str, np.ndarray]:
+        """Item ``i`` whole and unaugmented (as `Cache.render`; an export of crops gives the crop)."""
+        if self.summary.get("frames"):
+            raise ValueError(f"{self.path}: holds sequence crops; render() needs single frames")
+        h, w = self._shape(i)
+        return self._item(i, 0, 0, max(h, w))
 
     def _item(self, key, y: int, x: int, size: int) -> dict[str, np.ndarray]:
         """Render ``key`` (an index, or ``(item, frame)`` of a sequence-crop export) cropped."""
@@ -522,17 +570,20 @@ def default_cache_dir() -> Path:
 
 def open_training_data(source: str | os.PathLike, fields: Sequence[str], *, spps: Sequence[int] | None = None,
                        cache_dir: str | os.PathLike | None = None, progress: bool = False,
-                       fill: dict[str, float] | None = None) -> "Cache | ExportedCache":
+                       fill: dict[str, float] | None = None, reference: bool = True,
+                       repair: str | None = None) -> "Cache | ExportedCache":
     """A data_gen folder (decoded once into a `Cache` under ``cache_dir``) or an export ``.npz``
-    (`load_export`; it must hold ``fields``): the one entry point of the networks' ``make_dataset``,
-    so the same training command runs here and on a machine that has only the export."""
+    (`load_export`; it must hold ``fields``, and the reference unless ``reference=False``: a method
+    whose loss never reads one; ``repair`` as in `build_cache`): the one entry point of the networks' ``make_dataset``, so the same
+    training command runs here and on a machine that has only the export."""
     source = Path(source)
     if source.suffix == ".npz":
         if not source.is_file():
             raise FileNotFoundError(f"{source}: no such export file")
         ex = load_export(source)
-        missing = [f for f in ["color", *fields, "reference"] if f not in ex.items]
+        missing = [f for f in ["color", *fields, *(["reference"] if reference else [])] if f not in ex.items]
         if missing:
             raise ValueError(f"{source}: the export lacks {missing} (it holds {sorted(ex.items)})")
         return ex
-    return build_cache(source, fields, cache_dir or default_cache_dir(), spps=spps, progress=progress, fill=fill)
+    return build_cache(source, fields, cache_dir or default_cache_dir(), spps=spps, progress=progress, fill=fill,
+                       repair=repair)

@@ -204,26 +204,55 @@ def test_groups_are_trained_separately():
 
 def test_illegal_renders_are_found():
     """NaN anywhere or negative base radiance marks a render; signed gradients do not."""
+    ok = {k: np.abs(v) for k, v in _frame(4, 4, seed=3).items()}
+    signed = {**ok, "dx": -ok["dx"], "dy": -ok["dy"]}  # negative gradients are legal
+    nan = {**ok, "normal": ok["normal"].copy()}
+    nan["normal"][1, 2, 1] = np.nan
+    neg = {**ok, "color": ok["color"].copy()}
+    neg["color"][0, 0, 1] = -0.1
+    inf = {**ok, "dy": ok["dy"].copy()}
+    inf["dy"][3, 3, 0] = np.inf
+    assert [G.is_illegal(r) for r in (ok, signed, nan, neg, inf)] == [False, False, True, True, True]
 
-    class Fake:
-        slices = {"color": slice(0, 3), "dx": slice(3, 6), "dy": slice(6, 9), "albedo": slice(9, 12),
-                  "normal": slice(12, 15), "depth": slice(15, 16)}
 
-        def __init__(self, arrays):
-            self._a = arrays
-            self.frames = [{"array": str(i)} for i in range(len(arrays))]
+def test_dataset_from_a_folder_and_from_its_export_without_references(tmp_path, monkeypatch):
+    """A data folder's renders with NaN or negative base radiance (which the EXR contract refuses)
+    are dropped and counted, not an error; the kept renders export without the reference (GradNet
+    never reads it) and train the same crops from the export (to float16 / 8-bit rounding); renders
+    at other sampling rates are not training data."""
+    from conftest import make_shot, synthetic_frame
+    from jaxdenoise.pipeline import open_training_data
 
-        def array(self, name):
-            return self._a[int(name)]
-
-    ok = np.abs(np.random.default_rng(0).normal(size=(4, 4, 16))).astype(np.float32)
-    signed = ok.copy()
-    signed[..., 3:9] *= -1  # negative gradients are legal
-    nan = ok.copy()
-    nan[1, 2, 13] = np.nan
-    neg = ok.copy()
-    neg[0, 0, 1] = -0.1
-    assert G.illegal_frames(Fake([ok, signed, nan, neg])) == [2, 3]
+    monkeypatch.setenv("JAXDENOISE_CACHE", str(tmp_path / "cache"))
+    fields = ("color", "dx", "dy", "albedo", "normal", "depth")
+    for s in range(5):
+        f = synthetic_frame(16, 16, seed=s, fields=fields)
+        if s == 1:
+            f = f.replace(color=np.where(np.arange(16)[:, None, None] == 3, np.nan, f.color).astype(np.float32))
+        if s == 3:
+            f = f.replace(color=f.color - 2.0)  # negative radiance
+        (tmp_path / "data" / f"scene_{s}").mkdir(parents=True)
+        make_shot(tmp_path / "data" / f"scene_{s}", np.ones((16, 16, 3), np.float32), {64: f, 16: f})
+    cfg = dataclasses.replace(CFG, train_crop=8, train_batch=4)
+    with pytest.warns(RuntimeWarning):
+        ds = G.make_dataset(tmp_path / "data", cfg, progress=False)
+    assert ds.dropped == {"renders": 5, "dropped": 2} and len(ds) == 3
+    assert [f["shot"] for f in ds.frames] == ["scene_0", "scene_2", "scene_4"]
+    summary = ds.export(tmp_path / "train.npz", n=100, whole=True, spps=(64,), leave_out=("reference",))
+    assert summary["count"] == 3 and summary["left_out"] == ["reference"]
+    with pytest.raises(ValueError, match="lacks.*reference"):
+        open_training_data(tmp_path / "train.npz", ("dx", "dy", *G.FEATURES))
+    with pytest.raises(ValueError, match="leave_out names.*'variance'"):
+        ds.export(tmp_path / "x.npz", n=1, whole=True, leave_out=("variance",))
+    ex = G.make_dataset(tmp_path / "train.npz", cfg, progress=False)
+    assert ex.dropped == {"renders": 3, "dropped": 0} and len(ex) == 3 and "reference" not in ex.items
+    a = G.batch(ds, 5, cfg, np.random.default_rng(0))
+    b = G.batch(ex, 5, cfg, np.random.default_rng(0))
+    assert a.keys() == b.keys() and "reference" not in b
+    np.testing.assert_allclose(b["color"], a["color"], rtol=1e-3, atol=1e-3)
+    np.testing.assert_allclose(b["normal"], a["normal"], atol=1 / 255)
+    with pytest.raises(ValueError, match="no render at spp"):
+        G.make_dataset(tmp_path / "train.npz", dataclasses.replace(cfg, train_spps=(256,)), progress=False)
 
 
 def test_an_overshooting_output_decodes_finite_with_a_finite_gradient():

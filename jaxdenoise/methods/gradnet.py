@@ -55,7 +55,7 @@ from ..filters import gaussian
 
 __all__ = ["Config", "needs", "init", "apply", "forward", "loss", "loss_terms", "make_dataset", "batch",
            "param_groups", "group_train", "inputs", "predict", "g_branch", "features", "postprocess", "lambda_at", "first_order_weights",
-           "num_params", "illegal_frames", "TRAIN", "WEIGHTS", "FEATURES"]
+           "num_params", "is_illegal", "TRAIN", "WEIGHTS", "FEATURES"]
 
 FEATURES: tuple[str, ...] = ("albedo", "normal", "depth")  # 3 + 3 + 1 = 7 channels (Sec. 4.3.3)
 N_FEAT = 7
@@ -443,32 +443,34 @@ def loss(params: dict, batch: dict, config: Config, group: str | None = None):
 
 # -- training data ---------------------------------------------------------------------------------
 
-def illegal_frames(dataset) -> list[int]:
-    """Indices of the dataset's renders with an illegal value: NaN/Inf anywhere in the fields GradNet
-    reads, or negative base radiance (gradients are signed) (Sec. 5.1, footnote 1)."""
-    bad = []
-    fields = ["color", "dx", "dy", *FEATURES]
-    for i in range(len(dataset.frames)):
-        a = np.asarray(dataset.array(dataset.frames[i]["array"]))
-        sl = dataset.slices
-        vals = np.concatenate([a[..., sl[f]] for f in fields], -1)
-        if not np.all(np.isfinite(vals)) or np.any(a[..., sl["color"]] < 0):
-            bad.append(i)
-    return bad
+def is_illegal(render: dict) -> bool:
+    """Whether a training render holds an illegal value: NaN/Inf anywhere in the fields GradNet reads,
+    or negative base radiance (gradients are signed) (Sec. 5.1, footnote 1)."""
+    vals = np.concatenate([np.asarray(render[f]) for f in ("color", "dx", "dy", *FEATURES)], -1)
+    return bool(not np.all(np.isfinite(vals)) or np.any(np.asarray(render["color"]) < 0))
 
 
 def make_dataset(data_dir, config: Config, *, progress: bool = True):
-    """The gradient-domain training renders at ``train_spps`` (a data_gen folder, decoded once into
-    the pipeline cache), without the renders that hold an illegal value (`illegal_frames`: dropped
-    and counted, ``dataset.dropped``). The references the folder contract carries are never read."""
+    """The gradient-domain training renders at ``train_spps``, from a data_gen folder (decoded once
+    into the pipeline cache, bad values zeroed and counted per render) or from an export of this
+    function's result (`pipeline.Cache.export`, which may leave the reference out), without the
+    renders that hold an illegal value (`is_illegal`, or values the cache had to zero: dropped and
+    counted, ``dataset.dropped``). The references the folder contract carries are never read."""
     from ..pipeline import open_training_data
 
-    ds = open_training_data(data_dir, ("dx", "dy", *FEATURES), spps=config.train_spps, progress=progress)
-    if not hasattr(ds, "subset"):
-        raise ValueError(f"{data_dir}: gradnet trains from a data_gen folder (the export lacks a per-render scan)")
-    pool = [i for i, f in enumerate(ds.frames) if f["spp"] in set(config.train_spps)]
-    bad = set(illegal_frames(ds))
-    keep = [i for i in pool if i not in bad]
+    ds = open_training_data(data_dir, ("dx", "dy", *FEATURES), spps=config.train_spps, progress=progress,
+                            reference=False, repair="zero")
+    spps = {float(s) for s in config.train_spps}
+    frames = getattr(ds, "frames", None)  # a cache counts the values it had to zero (a folder's illegal renders)
+    pool, keep = [], []
+    for i in range(len(ds)):
+        r = ds.render(i)
+        if float(r["spp"]) in spps:
+            pool.append(i)
+            if not is_illegal(r) and not (frames and frames[i].get("repaired")):
+                keep.append(i)
+    if not pool:
+        raise ValueError(f"{data_dir}: no render at spp {list(config.train_spps)}")
     if not keep:
         raise ValueError(f"{data_dir}: every one of {len(pool)} renders at spp {list(config.train_spps)} has an "
                          "illegal value (NaN/Inf or negative radiance)")
