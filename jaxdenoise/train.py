@@ -8,9 +8,9 @@ What a trainable method module provides (besides ``Config``, ``init``, ``apply``
   (anything that does not depend on the parameters, e.g. LBF's secondary features);
 - ``batch(dataset, step, config, rng) -> batch``: the mini-batch of one step; ``rng`` is a
   ``numpy.random.Generator`` seeded from ``(seed, step)``, so a resumed run draws the same
-  batches as an uninterrupted one (being a function of the step alone, the next ``PREFETCH``
-  batches are drawn on a worker thread while the device runs the current step; it must not
-  mutate ``dataset``);
+  batches as an uninterrupted one (being a function of the step alone, the next batches are drawn
+  on worker threads, `batch_workers`, while the device runs the current step; it must not mutate
+  ``dataset``);
 - optionally ``init_from_data(key, config, dataset) -> params`` (e.g. input normalization
   statistics from the training set; default ``init(key, config)``);
 - optionally ``TRAIN``: a dict of `TrainConfig` defaults for the method (e.g. its optimizer);
@@ -62,6 +62,7 @@ import dataclasses
 import functools
 import inspect
 import math
+import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -84,8 +85,17 @@ WEIGHTS_DIR = "weights"
 BEST_DIR = "best"
 
 
-# Batches drawn ahead on a worker thread (the batch of step t depends on (seed, t) only).
+# Batches drawn ahead on worker threads (the batch of step t depends on (seed, t) only).
 PREFETCH = 2
+
+
+def batch_workers() -> int:
+    """Threads that draw batches: one where XLA computes on the same CPU cores; beside an
+    accelerator, half the host's cores (at most 8), since crops and augmentations are array copies
+    that release the GIL and the device can outrun one thread."""
+    if jax.default_backend() == "cpu":
+        return 1
+    return max(1, min(8, (os.cpu_count() or 2) // 2))
 
 
 class TrainError(RuntimeError):
@@ -505,14 +515,16 @@ def train(method_name: str, data_dir: str | Path, out_dir: str | Path, *, resume
     def draw(s: int) -> Any:  # a pure function of (seed, step): the same batches on resume
         return module.batch(dataset, s, method.config, np.random.default_rng([int(seed), s]))
 
-    # The next PREFETCH batches are drawn on a worker thread while the device runs the current step.
-    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="jaxdenoise-batches")
+    # The next batches are drawn on worker threads while the device runs the current step.
+    workers = batch_workers()
+    ahead = PREFETCH * workers
+    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="jaxdenoise-batches")
     pending: dict[int, Any] = {}
     try:
         if init_from is not None and start == 0:
             run_validation(0)  # the starting weights' score: fine-tuning keeps them unless it beats them
         for step in range(start, tc.steps):
-            for s in range(step, min(step + PREFETCH, tc.steps)):
+            for s in range(step, min(step + ahead, tc.steps)):
                 if s not in pending:
                     pending[s] = pool.submit(draw, s)
             b = shard_batch(pending.pop(step).result())
