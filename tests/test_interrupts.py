@@ -31,6 +31,25 @@ def _kill_after(cmd: list[str], seconds: float, cwd=ROOT) -> int | None:
         return None
 
 
+def _kill_at_file(cmd: list[str], folder: Path, n: int, cwd=ROOT) -> int | None:
+    """Start ``cmd``, SIGKILL it as soon as ``folder`` holds ``n`` finished EXR files (None if it
+    finished first: its return code). A moment set by the run's progress, not by a wall time measured
+    on another run (a second run can be much faster than the first: warm caches)."""
+    p = subprocess.Popen(cmd, cwd=cwd, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        while p.poll() is None:
+            if folder.is_dir() and sum(not f.name.startswith(".") for f in folder.rglob("*.exr")) >= n:
+                p.send_signal(signal.SIGKILL)
+                p.wait()
+                return None
+            time.sleep(0.002)
+        return p.returncode
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+
+
 def _run(cmd: list[str]) -> float:
     """Run ``cmd`` to completion; returns its wall time (kill moments are fractions of it)."""
     t0 = time.perf_counter()
@@ -68,9 +87,12 @@ def dataset_reference(tmp_path_factory):
 
 
 def _dataset_case(tmp_path, reference, fraction):
-    ref_dir, duration = reference
+    """Killed once ``fraction`` of the reference run's EXR files exist (at least one, one short of
+    all), resumed, compared bit for bit."""
+    ref_dir, _ = reference
+    total = len(_exr_files(ref_dir))
     out = tmp_path / f"d_{fraction:.2f}"
-    rc = _kill_after(DATASET + ["--out", str(out)], fraction * duration)
+    rc = _kill_at_file(DATASET + ["--out", str(out)], out, min(total - 1, max(1, round(fraction * total))))
     assert rc is None, "the run finished before the kill; the case tests nothing"
     if out.exists():
         _all_complete(out)  # nothing half-written under a final name
