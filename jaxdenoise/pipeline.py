@@ -572,10 +572,11 @@ def open_training_data(source: str | os.PathLike, fields: Sequence[str], *, spps
                        cache_dir: str | os.PathLike | None = None, progress: bool = False,
                        fill: dict[str, float] | None = None, reference: bool = True,
                        repair: str | None = None) -> "Cache | ExportedCache":
-    """A data_gen folder (decoded once into a `Cache` under ``cache_dir``) or an export ``.npz``
-    (`load_export`; it must hold ``fields``, and the reference unless ``reference=False``: a method
-    whose loss never reads one; ``repair`` as in `build_cache`): the one entry point of the networks' ``make_dataset``, so the same
-    training command runs here and on a machine that has only the export."""
+    """A data_gen folder (decoded once into a `Cache` under ``cache_dir``; ``repair`` as in
+    `build_cache`) or an export ``.npz`` (`load_export`; it must hold ``fields``, and the reference
+    unless ``reference=False``: a method whose loss never reads one): the one entry point of the
+    networks' ``make_dataset``, so the same training command runs here and on a machine that has
+    only the export."""
     source = Path(source)
     if source.suffix == ".npz":
         if not source.is_file():
