@@ -15,7 +15,8 @@ cores give; docs/results/gradnet.md).
    epochs, stopped by ``--seconds`` or ``--steps``; validated every ``--validate-every`` steps, the
    best step kept in ``RUNS/best``. It resumes from its checkpoint when started again. Results go to
    ``--out``: ``best.tar`` and ``last.tar`` (weights only: a device machine sends back files of at
-   most 16 MiB, and the checkpoint with Adam's state is 4x that) and ``summary.json``.
+   most 16 MiB, and the checkpoint with Adam's state is 4x that) and ``summary.json``. ``--init`` fine-tunes
+   given weights instead (lambda held at its cap), ``--train-spps`` trains on other rates.
 
     python experiments/train_gradnet.py prepare --train data/gradnet_train --val data/gradnet_val
     python experiments/train_gradnet.py run --out OUT --runs /tmp/gradnet_gpu --seconds 420
@@ -69,6 +70,10 @@ def run(args) -> None:
     out.mkdir(parents=True, exist_ok=True)
     cfg = dataclasses.replace(gradnet.Config(), train_crop=args.crop, train_batch=args.batch,
                               epoch_patches=args.epoch_patches)
+    if args.train_spps:
+        cfg = dataclasses.replace(cfg, train_spps=tuple(int(v) for v in args.train_spps.split(",")))
+    if args.init:  # the weights went through Eq. 14's ramp: hold lambda at its cap from the first step
+        cfg = dataclasses.replace(cfg, lambda_epochs=0, lambda_start=cfg.lambda_max)
     # x0.95 every other epoch (Sec. 5.2), counted in updates of each group (gradnet.TRAIN's convention)
     every = max(1, round(2 * args.epoch_patches / args.batch))
     over = {"schedule_every": every}
@@ -78,7 +83,7 @@ def run(args) -> None:
     s = train.train("gradnet", args.train, runs, resume=True, steps=args.steps, seed=args.seed, progress=False,
                     config=cfg, val_data=args.val, val_spps=[int(v) for v in args.val_spps.split(",")],
                     validate_every=args.validate_every, checkpoint_every=args.validate_every,
-                    time_limit=args.seconds, **over)
+                    time_limit=args.seconds, init_from=args.init, **over)
     rec = {"command": " ".join(sys.argv), "device": str(jax.devices()[0]), "seconds": time.perf_counter() - t,
            "steps": s["steps_done"], "steps_this_run": s["steps_this_run"], "final_loss": s["final_loss"],
            "crops_seen": s["steps_done"] // 2 * args.batch, "crop": args.crop, "batch": args.batch,
@@ -119,6 +124,9 @@ def main() -> None:
     r.add_argument("--validate-every", type=int, default=1000)
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--lr", type=float, default=None, help="Adam's base rate (default: gradnet.TRAIN's)")
+    r.add_argument("--train-spps", default=None, help="comma list of training rates (default: gradnet.Config's 64)")
+    r.add_argument("--init", default=None, help="fine-tune these weights (a folder); Eq. 14's lambda is then "
+                                                "held at its cap from step 0")
     args = ap.parse_args()
     {"prepare": prepare, "run": run}[args.cmd](args)
 

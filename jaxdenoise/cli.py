@@ -122,6 +122,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
     from .train import TrainError, train
 
     overrides = {"validate_every": args.validate_every} if args.validate_every is not None else {}
+    if args.ema is not None:
+        overrides["ema"] = args.ema
     try:
         summary = train(args.method, args.data, args.out, resume=args.resume, steps=args.steps, seed=args.seed,
                         progress=not args.quiet, val_data=args.val_data, val_spps=args.val_spps,
@@ -184,6 +186,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--val-spps", type=_int_list,
                    help="comma-separated sampling rates of --val-data to score (default: all)")
     s.add_argument("--validate-every", type=int, help="steps between validations (default: only at the end)")
+    s.add_argument("--ema", type=float, help="validate and save an exponential moving average of the params "
+                                             "with this decay, e.g. 0.999 (default: the method's, else off)")
     s.add_argument("--quiet", action="store_true")
     s.set_defaults(func=_cmd_train)
 

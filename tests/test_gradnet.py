@@ -202,6 +202,22 @@ def test_groups_are_trained_separately():
     assert set(G.param_groups(cfg)["autoencoder"]) | set(G.param_groups(cfg)["gbranch"]) == set(params)
 
 
+def test_fine_tuning_may_change_the_loss_but_not_the_model():
+    """Weights given to `train(init_from=...)` must match the run's model config; the loss and its
+    schedule (fields marked training-only) and the training data (``train_*``) may differ."""
+    from jaxdenoise.checkpoint import config_to_dict
+    from jaxdenoise.train import model_fields
+
+    saved = config_to_dict(CFG)
+    same_model = (dataclasses.replace(CFG, lambda_epochs=0, lambda_start=2.0, alpha=0.5, first_order=False),
+                  dataclasses.replace(CFG, train_spps=(64, 256), train_crop=128))
+    for cfg in same_model:
+        assert model_fields(cfg, config_to_dict(cfg)) == model_fields(cfg, saved)
+    for cfg in (dataclasses.replace(CFG, widths=(8, 16, 32)), dataclasses.replace(CFG, mu=8.0),
+                dataclasses.replace(CFG, pp_sigma=10.0)):
+        assert model_fields(cfg, config_to_dict(cfg)) != model_fields(cfg, saved)
+
+
 def test_illegal_renders_are_found():
     """NaN anywhere or negative base radiance marks a render; signed gradients do not."""
     ok = {k: np.abs(v) for k, v in _frame(4, 4, seed=3).items()}

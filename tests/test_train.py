@@ -126,6 +126,35 @@ def test_validation_keeps_the_best_params_and_resumes_its_record(dataset, tmp_pa
         np.testing.assert_allclose(a["relmse"], b["relmse"], rtol=1e-5)  # same params, same scores
 
 
+def test_weight_average_is_the_ema_of_the_iterates_and_resumes(dataset, tmp_path):
+    kw = dict(config=CFG, progress=False, checkpoint_every=1)
+
+    def iterate(n):  # the same batches in every run: p0 (init) .. p3 are the iterates of one run
+        train("lbf", dataset, tmp_path / f"plain{n}", steps=n, **kw)
+        return _params(tmp_path / f"plain{n}")[0]
+
+    iterates = [iterate(n) for n in range(4)]
+    expect = iterates[0]
+    for p in iterates[1:]:
+        expect = jax.tree_util.tree_map(lambda e, x: 0.5 * e + 0.5 * x, expect, p)
+    val = dict(val_data=dataset, val_spps=[4], validate_every=3)
+    full = train("lbf", dataset, tmp_path / "ema", steps=3, ema=0.5, **kw, **val)
+    got, _ = _params(tmp_path / "ema")
+    for x, y in zip(jax.tree_util.tree_leaves(expect), jax.tree_util.tree_leaves(got)):
+        np.testing.assert_allclose(y, x, rtol=1e-5, atol=1e-7)
+    assert any(float(np.max(np.abs(np.asarray(a) - np.asarray(b)))) > 1e-6  # the average is not the last iterate
+               for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(iterates[3])))
+    rec = full["validation"][-1]
+    assert set(rec["raw"]) == {"relmse", "per_spp"} and rec["raw"]["relmse"] != rec["relmse"]
+    # interrupted after step 2 and resumed: the checkpoint carries the average
+    train("lbf", dataset, tmp_path / "part", steps=2, ema=0.5, **kw)
+    train("lbf", dataset, tmp_path / "part", steps=3, ema=0.5, resume=True, **kw)
+    for x, y in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(_params(tmp_path / "part")[0])):
+        np.testing.assert_allclose(y, x, rtol=1e-5, atol=1e-7)
+    with pytest.raises(TrainError, match="ema"):
+        train("lbf", dataset, tmp_path / "bad", steps=1, ema=1.0, **kw)
+
+
 def test_validation_data_errors_name_the_folder_and_rate(dataset, tmp_path):
     from jaxdenoise.methods import get
     from jaxdenoise.train import load_validation

@@ -62,6 +62,11 @@ N_FEAT = 7
 STRIDE = 8  # three stride-2 convolutions
 
 
+def _training(default: Any) -> Any:
+    """A config field that shapes training only (`jaxdenoise.train`: ``init_from`` may differ in it)."""
+    return dataclasses.field(default=default, metadata={"training": True})
+
+
 @dataclasses.dataclass(frozen=True)
 class Config:
     """GradNet hyperparameters; paper values cited, our choices marked (docs/methods/gradnet.md)."""
@@ -72,13 +77,14 @@ class Config:
     slope: float = 0.01  # leaky ReLU (Sec. 4.4)
     mu: float = 16.0  # Eq. 6 (Sec. 4.2)
     compression: str = "mu-law"  # "mu-law" (Eq. 6) or "log" (log(1 + |I|): the Fig. 17 comparison)
-    first_order: bool = True  # False: L_data + L_grad only (the Fig. 12 ablation)
-    alpha: float = 1.0  # Eq. 7 (Sec. 5.2)
-    sigma_b2: float = 1.0 / 18.0  # w_ij bandwidth (Sec. 4.3.3)
-    lambda_start: float = 0.1  # Eq. 14
-    lambda_growth: float = 1.1  # Eq. 14
-    lambda_max: float = 2.0  # Eq. 14
-    lambda_epochs: int = 5  # Eq. 14: lambda = 0 up to this epoch
+    # The loss (Sec. 4.3) and its schedule: training-only, so weights fine-tune under other values.
+    first_order: bool = _training(True)  # False: L_data + L_grad only (the Fig. 12 ablation)
+    alpha: float = _training(1.0)  # Eq. 7 (Sec. 5.2)
+    sigma_b2: float = _training(1.0 / 18.0)  # w_ij bandwidth (Sec. 4.3.3)
+    lambda_start: float = _training(0.1)  # Eq. 14
+    lambda_growth: float = _training(1.1)  # Eq. 14
+    lambda_max: float = _training(2.0)  # Eq. 14
+    lambda_epochs: int = _training(5)  # Eq. 14: lambda = 0 up to this epoch
     residual_output: bool = True  # output = T(I_b) + decoder (ours, docs/methods/gradnet.md)
     input_skip: bool = True  # the decoder's last level joins the full-resolution inputs (ours, docs/methods/gradnet.md)
     head_width: int = 0  # > 0: a full-resolution hidden layer beside the output conv (ours, docs/methods/gradnet.md)
