@@ -430,8 +430,9 @@ def train(method_name: str, data_dir: str | Path, out_dir: str | Path, *, resume
     (fields of `TrainConfig`) adjust the optimization; ``dataset`` reuses the result of an earlier
     ``make_dataset`` (experiments that train several variants on the same data); ``val_data`` /
     ``val_spps`` turn on validation (module docstring); ``init_from`` (a weights folder of the same
-    method and model config, e.g. shipped weights; training-only config fields may differ) replaces the initial params, frozen entries included, so
-    a run can fine-tune them (ignored when resuming). Returns the summary.
+    method and model config, e.g. shipped weights; training-only fields may differ, `model_fields`)
+    replaces the initial params, frozen entries included, so a run can fine-tune them (ignored when
+    resuming). Returns the summary.
     """
     method = get(method_name, config)
     module = method.module
@@ -494,7 +495,8 @@ def train(method_name: str, data_dir: str | Path, out_dir: str | Path, *, resume
         template = {"params": params, "opt_state": opt_state}
         if tc.ema and "ema" in loaded:
             template["ema"] = params
-        state = restore_like(template, {k: loaded[k] for k in template}, where=str(ckpt_dir))
+        state = restore_like(template, loaded if "ema" in template else {k: v for k, v in loaded.items() if k != "ema"},
+                             where=str(ckpt_dir))
         params, opt_state = state["params"], state["opt_state"]
         if tc.ema:
             ema_params = state.get("ema", params)
