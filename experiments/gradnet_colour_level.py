@@ -77,15 +77,10 @@ def loss_under_rescale(weights: str | None, folder: str, spp: int, count: int, f
         batch = {k: np.asarray(getattr(b, k))[None] for k in ("color", "dx", "dy", *g.FEATURES)}
         y, G, x = g.predict(p, batch, cfg)
         hdr = g.to_hdr(y, cfg)
-        w = g.first_order_weights(x["tb"], cfg)
         for c in range(3):
             for f in factors:
-                scale = jnp.ones(3).at[c].set(f)
-                o = hdr * scale
-                t = g.compress(o, cfg)
-                terms = (float(jnp.abs(t - x["tb"]).sum(-1).mean()), float(g._grad_loss(o, x, cfg)),
-                         float(g._first_order(t, G, x["feat"], w)))
-                sums.setdefault(f"{'rgb'[c]} x{f:g}", []).append(terms)
+                t = g.output_terms(g.compress(hdr * jnp.ones(3).at[c].set(f), cfg), G, x, cfg)
+                sums.setdefault(f"{'rgb'[c]} x{f:g}", []).append([float(t[k]) for k in ("data", "grad", "first")])
     out = {}
     for k, v in sums.items():
         d, gr, fo = np.mean(np.asarray(v), axis=0)

@@ -55,7 +55,7 @@ from ..filters import gaussian
 
 __all__ = ["Config", "needs", "init", "apply", "forward", "loss", "loss_terms", "make_dataset", "batch",
            "param_groups", "group_train", "inputs", "predict", "g_branch", "features", "postprocess", "lambda_at", "first_order_weights",
-           "num_params", "is_illegal", "TRAIN", "WEIGHTS", "FEATURES"]
+           "num_params", "is_illegal", "output_terms", "TRAIN", "WEIGHTS", "FEATURES"]
 
 FEATURES: tuple[str, ...] = ("albedo", "normal", "depth")  # 3 + 3 + 1 = 7 channels (Sec. 4.3.3)
 N_FEAT = 7
@@ -418,11 +418,15 @@ def loss_terms(params: dict, batch: dict, config: Config) -> dict:
     """Every term on a batch (no reference read): ``data`` (Eq. 8), ``grad`` (Eq. 9), ``first``
     (Eq. 10, with ``G`` from the G-branch held fixed), ``g_branch`` (Eq. 11)."""
     y, G, x = predict(params, batch, config)
-    out_hdr = to_hdr(y, config)
+    return output_terms(y, G, x, config)
+
+
+def output_terms(y: jax.Array, G: jax.Array, x: dict, config: Config) -> dict:
+    """`loss_terms` of a given compressed output ``y`` (``(y, G, x)`` as `predict` returns them)."""
     w = first_order_weights(x["tb"], config)
     return {
         "data": jnp.abs(y - x["tb"]).sum(-1).mean(),
-        "grad": _grad_loss(out_hdr, x, config),
+        "grad": _grad_loss(to_hdr(y, config), x, config),
         "first": _first_order(y, jax.lax.stop_gradient(G), x["feat"], w),
         "g_branch": _first_order(x["tb"], G, x["feat"], w),
     }
