@@ -40,11 +40,13 @@ def main() -> None:
     for mode in ("frame", "global"):
         for seed in (0, 1):
             cfg = demc.Config(position_norm=mode, train_batch=args.batch, train_crop=args.crop)
+            method = get("demc", cfg)
             if dataset is None:
-                dataset = demc.make_dataset(args.train, cfg, progress=False)
+                dataset = train.load_data(method, args.train, progress=False)
             out = Path(args.runs) / f"{mode}_s{seed}"
-            s = train.train("demc", args.train, out, resume=True, steps=args.steps, seed=seed, progress=False,
-                            config=cfg, dataset=dataset, learning_rate=5e-4, schedule="constant")
+            s = train.train(method, dataset, out, train.TrainConfig.for_method(
+                method, resume=True, steps=args.steps, seed=seed, progress=False, learning_rate=5e-4,
+                schedule="constant"))
             fn = load("demc", out / "weights")
             row = {"seconds": s["seconds"], "final_loss": s["final_loss"]}
             for label, scale, shift in (("as rendered", 1.0, 0.0), ("rescaled", 10.0, np.array([100.0, 0.0, -50.0]))):

@@ -28,8 +28,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from jaxdenoise.fsutil import write_json  # noqa: E402
-from jaxdenoise.methods import gradnet  # noqa: E402
-from jaxdenoise.train import train  # noqa: E402
+from jaxdenoise.methods import get, gradnet  # noqa: E402
+from jaxdenoise.train import TrainConfig, load_data, train  # noqa: E402
 
 PAPER_LR = {"learning_rate": 1e-4, "clip_norm": None}  # Sec. 5.2 (the trainer's other defaults: gradnet.TRAIN)
 # study -> variant -> (method config overrides, trainer overrides)
@@ -67,16 +67,18 @@ def main(argv=None) -> int:
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
     base = dataclasses.replace(gradnet.Config(), epoch_patches=args.epoch_patches)
-    dataset = gradnet.make_dataset(args.data, base)
+    dataset = load_data(get("gradnet", base), args.data)
     results = {}
     for name, (over, train_over) in STUDIES[args.study].items():
         cfg = dataclasses.replace(base, **over)
         slug = "".join(c if c.isalnum() or c in "-." else "_" for c in name.replace("+", "plus"))
         folder = Path(args.runs) / args.study / slug
         t0 = time.perf_counter()
-        s = train("gradnet", args.data, folder, steps=args.steps, seed=args.seed, config=cfg, dataset=dataset,
-                  val_data=args.val, val_spps=[int(v) for v in args.val_spps.split(",")],
-                  validate_every=args.validate_every, resume=True, progress=False, **train_over)
+        method = get("gradnet", cfg)
+        s = train(method, dataset, folder, TrainConfig.for_method(
+            method, steps=args.steps, seed=args.seed, val_data=args.val,
+            val_spps=[int(v) for v in args.val_spps.split(",")], validate_every=args.validate_every, resume=True,
+            progress=False, **train_over))
         results[name] = {"config": over, "train": train_over, "validation": s["validation"], "best": s["best"],
                          "seconds": time.perf_counter() - t0, "folder": str(folder)}
         print(name, s["line"], flush=True)

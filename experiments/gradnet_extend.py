@@ -23,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from jaxdenoise import checkpoint  # noqa: E402
 from jaxdenoise.methods import get  # noqa: E402
-from jaxdenoise.train import CHECKPOINT_DIR, train  # noqa: E402
+from jaxdenoise.train import CHECKPOINT_DIR, TrainConfig, train  # noqa: E402
 
 
 def extend(src: Path, dst: Path, head_width: int, seed: int, data: str, batches: int = 8) -> None:
@@ -73,9 +73,11 @@ def main(argv=None) -> int:
     if not (out / CHECKPOINT_DIR / checkpoint.PARAMS_FILE).is_file():
         extend(Path(args.src), out, args.head_width, args.seed, args.data)
     cfg = checkpoint.config_from_dict(get("gradnet").module.Config, checkpoint.load(out / CHECKPOINT_DIR)[1]["config"])
-    summary = train("gradnet", args.data, out, resume=True, steps=args.steps, seed=args.seed, config=cfg,
-                    val_data=args.val, val_spps=[int(s) for s in args.val_spps.split(",")] if args.val else None,
-                    validate_every=args.validate_every)
+    method = get("gradnet", cfg)
+    summary = train(method, args.data, out, TrainConfig.for_method(
+        method, resume=True, steps=args.steps, seed=args.seed, val_data=args.val,
+        val_spps=[int(s) for s in args.val_spps.split(",")] if args.val else None,
+        validate_every=args.validate_every))
     print(summary.get("line", summary))
     return 0
 

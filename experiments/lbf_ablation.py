@@ -31,9 +31,9 @@ import numpy as np  # noqa: E402
 from jaxdenoise import checkpoint, metrics  # noqa: E402
 from jaxdenoise.fsutil import write_json, write_text  # noqa: E402
 from jaxdenoise.io import read_buffers, read_image  # noqa: E402
-from jaxdenoise.methods import lbf  # noqa: E402
+from jaxdenoise.methods import get, lbf  # noqa: E402
 from jaxdenoise.methods.lbf_features import CATEGORIES  # noqa: E402
-from jaxdenoise.train import train  # noqa: E402
+from jaxdenoise.train import TrainConfig, load_data, train  # noqa: E402
 from lbf_eval import frames  # noqa: E402
 from lbf_train import link_scenes  # noqa: E402
 
@@ -71,14 +71,16 @@ def main() -> None:
     runs = Path(args.runs)
     base = lbf.Config(radius=args.radius)
     names = link_scenes(Path(args.train), args.scenes, runs / "data")
-    dataset = lbf.make_dataset(runs / "data", base)
+    dataset = load_data(get("lbf", base), runs / "data")
     trained = []
     for group, label, cfg, seed in variants(base, args.seeds):
         if args.only and label not in args.only.split(","):
             continue
         run = runs / label.replace(" ", "_").replace(",", "").replace("(", "").replace(")", "").replace("[", "").replace("]", "")
-        s = train("lbf", runs / "data", run, steps=args.steps, config=cfg, progress=False, dataset=dataset,
-                  checkpoint_every=args.steps, seed=seed, resume=args.resume)
+        method = get("lbf", cfg)
+        s = train(method, dataset, run, TrainConfig.for_method(method, steps=args.steps, progress=False,
+                                                               checkpoint_every=args.steps, seed=seed,
+                                                               resume=args.resume))
         trained.append((group, label, cfg, seed, run, s))
         print(f"trained {label}: loss {s['final_loss']:.4g} ({time.time() - t0:.0f} s)", flush=True)
     # Held-out frames are read after training (they may still be rendering when this starts).

@@ -162,7 +162,7 @@ def main() -> None:
 
     from jaxdenoise.fsutil import write_json
     from jaxdenoise.methods import get
-    from jaxdenoise.train import train
+    from jaxdenoise.train import TrainConfig, train
 
     config = get(args.method).config
     if args.crop is not None:
@@ -183,9 +183,10 @@ def main() -> None:
     if val_names:
         val = {"val_data": out / "val", "val_spps": [int(x) for x in args.val_spps.split(",")],
                "validate_every": args.validate_every}
-    summary = train(args.method, out / "data", out, resume=args.resume, steps=args.steps, seed=args.seed,
-                    progress=True, time_limit=args.minutes * 60, config=config, init_from=args.init,
-                    **overrides, **val)
+    method = get(args.method, config)
+    summary = train(method, out / "data", out, TrainConfig.for_method(
+        method, resume=args.resume, steps=args.steps, seed=args.seed, progress=True, time_limit=args.minutes * 60,
+        init_from=args.init, **overrides, **val))
     print(summary["line"], f"({time.time() - t0:.0f} s)")
 
 

@@ -70,7 +70,7 @@ def run(args) -> None:
     import jax
 
     from jaxdenoise import train
-    from jaxdenoise.methods import demc
+    from jaxdenoise.methods import demc, get
 
     out, work = Path(args.out), Path(args.runs)
     out.mkdir(parents=True, exist_ok=True)
@@ -87,14 +87,15 @@ def run(args) -> None:
 
     def one(name, cfg, seed, steps, time_limit, lr_every, init_from=None):
         nonlocal dataset
+        method = get("demc", cfg)
         if dataset is None:
-            dataset = demc.make_dataset(args.train, cfg, progress=False)
+            dataset = train.load_data(method, args.train, progress=False)
         t = time.perf_counter()
-        s = train.train("demc", args.train, work / name, resume=True, steps=steps, seed=seed, progress=False,
-                        config=cfg, dataset=dataset, val_data=args.val, learning_rate=args.lr,
-                        schedule="exponential", schedule_every=max(1, lr_every), schedule_factor=0.5,
-                        validate_every=args.validate_every, checkpoint_every=args.validate_every,
-                        time_limit=time_limit, init_from=init_from)
+        s = train.train(method, dataset, work / name, train.TrainConfig.for_method(
+            method, resume=True, steps=steps, seed=seed, progress=False, val_data=args.val, learning_rate=args.lr,
+            schedule="exponential", schedule_every=max(1, lr_every), schedule_factor=0.5,
+            validate_every=args.validate_every, checkpoint_every=args.validate_every, time_limit=time_limit,
+            init_from=init_from))
         rec = {"variant": cfg.variant, "seed": seed, "steps": s["steps_done"], "seconds": time.perf_counter() - t,
                "final_loss": s["final_loss"], "best": s.get("best"), "params": demc.num_params(cfg),
                "crops_seen": s["steps_done"] * cfg.train_batch, "crop": cfg.train_crop,

@@ -64,7 +64,7 @@ def run(args) -> None:
     import jax
 
     from jaxdenoise import train
-    from jaxdenoise.methods import gradnet
+    from jaxdenoise.methods import get, gradnet
 
     out, runs = Path(args.out), Path(args.runs)
     out.mkdir(parents=True, exist_ok=True)
@@ -80,10 +80,11 @@ def run(args) -> None:
     if args.lr is not None:
         over["learning_rate"] = args.lr
     t = time.perf_counter()
-    s = train.train("gradnet", args.train, runs, resume=True, steps=args.steps, seed=args.seed, progress=False,
-                    config=cfg, val_data=args.val, val_spps=[int(v) for v in args.val_spps.split(",")],
-                    validate_every=args.validate_every, checkpoint_every=args.validate_every,
-                    time_limit=args.seconds, init_from=args.init, **over)
+    method = get("gradnet", cfg)
+    s = train.train(method, args.train, runs, train.TrainConfig.for_method(
+        method, resume=True, steps=args.steps, seed=args.seed, progress=False, val_data=args.val,
+        val_spps=[int(v) for v in args.val_spps.split(",")], validate_every=args.validate_every,
+        checkpoint_every=args.validate_every, time_limit=args.seconds, init_from=args.init, **over))
     rec = {"command": " ".join(sys.argv), "device": str(jax.devices()[0]), "seconds": time.perf_counter() - t,
            "steps": s["steps_done"], "steps_this_run": s["steps_this_run"], "final_loss": s["final_loss"],
            "crops_seen": s["steps_done"] // 2 * args.batch, "crop": args.crop, "batch": args.batch,

@@ -64,14 +64,16 @@ def prepare(args) -> None:
 
 def one(args) -> None:
     from jaxdenoise import train
-    from jaxdenoise.methods import rae
+    from jaxdenoise.methods import get, rae
 
     cfg = dataclasses.replace(rae.Config(train_crop=args.crop), **VARIANTS[args.variant])
+    method = get("rae", cfg)
     t = time.perf_counter()
     lr = {} if args.lr is None else {"learning_rate": args.lr}
-    s = train.train("rae", args.train, Path(args.runs) / args.name, resume=True, steps=args.max_steps, seed=args.seed,
-                    progress=False, config=cfg, val_data=args.val, val_spps=[1], validate_every=args.validate_every,
-                    checkpoint_every=args.validate_every, time_limit=args.seconds, init_from=args.init_from, **lr)
+    s = train.train(method, args.train, Path(args.runs) / args.name, train.TrainConfig.for_method(
+        method, resume=True, steps=args.max_steps, seed=args.seed, progress=False, val_data=args.val, val_spps=[1],
+        validate_every=args.validate_every, checkpoint_every=args.validate_every, time_limit=args.seconds,
+        init_from=args.init_from, **lr))
     rec = {"variant": args.variant, "seed": args.seed, "steps": s["steps_done"], "seconds": time.perf_counter() - t,
            "final_loss": s["final_loss"], "best": s.get("best"), "crop": args.crop, "params": rae.num_params(cfg),
            "crops_seen": s["steps_done"] * cfg.train_batch,

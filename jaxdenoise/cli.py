@@ -119,15 +119,17 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from .train import TrainError, train
+    from .methods import get
+    from .train import TrainConfig, TrainError, train
 
-    overrides = {"validate_every": args.validate_every} if args.validate_every is not None else {}
-    if args.ema is not None:
-        overrides["ema"] = args.ema
+    # Each option maps onto one TrainConfig field; options left unset keep the method's TRAIN default.
+    options = {"steps": args.steps, "seed": args.seed, "resume": args.resume, "init_from": args.init,
+               "val_data": args.val_data, "val_spps": args.val_spps, "validate_every": args.validate_every,
+               "ema": args.ema, "progress": not args.quiet}
     try:
-        summary = train(args.method, args.data, args.out, resume=args.resume, steps=args.steps, seed=args.seed,
-                        progress=not args.quiet, val_data=args.val_data, val_spps=args.val_spps,
-                        init_from=args.init, **overrides)
+        method = get(args.method)
+        summary = train(method, args.data, args.out,
+                        TrainConfig.for_method(method, **{k: v for k, v in options.items() if v is not None}))
     except TrainError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -1,6 +1,21 @@
 """The generic training loop behind ``jaxdenoise train METHOD`` (DESIGN.md "Methods", "Command line").
 
-``train(method_name, data_dir, out_dir, *, resume=False, steps=None, seed=0, progress=True) -> dict``
+```python
+from jaxdenoise import methods, train
+method = methods.get("lbf")                                  # resolved once, passed down
+run = train.TrainConfig.for_method(method, steps=400, val_data="data/val", validate_every=50)
+summary = train.train(method, "data/train", "runs/lbf", run)  # data: a folder, an export or load_data(...)
+print(summary["line"])
+```
+
+``train(method, data, out_dir, run=None) -> dict`` takes the resolved `jaxdenoise.methods.Method`
+(never a name: nothing below looks the method up again), the training data (a folder or export, or
+a `TrainingData` from `load_data` that several runs share), the output folder and one
+`TrainConfig`: everything a run needs besides the method and the data, one field per option of
+``jaxdenoise train`` (``--steps`` -> ``steps``, ``--quiet`` -> ``progress=False``, ...).
+`TrainConfig.for_method` starts from the method's ``TRAIN`` defaults. The body reads as setup
+(`initial_state`, `make_stepper`), loop (one `Stepper` call per batch, `validation_round` and
+`save_checkpoint` on their schedules) and finish (`save_weights`, the summary).
 
 What a trainable method module provides (besides ``Config``, ``init``, ``apply``, ``loss``):
 
@@ -82,11 +97,13 @@ import numpy as np
 
 from . import checkpoint
 from .fsutil import write_json
-from .methods import MethodError, get
+from .methods import Method, MethodError
 from .nn.state import merge_updates
 
-__all__ = ["TrainConfig", "TrainError", "train", "restore_like", "make_optimizer", "model_fields", "summary_line",
-           "load_validation", "validate", "shard_batch"]
+__all__ = ["TrainConfig", "TrainError", "TrainingData", "State", "Group", "Stepper", "train", "load_data",
+           "initial_state", "param_groups", "step_fn", "make_stepper", "validation_round", "save_checkpoint",
+           "save_weights", "restore_like", "make_optimizer", "model_fields", "summary_line", "load_validation",
+           "validate", "shard_batch", "batch_workers"]
 
 CHECKPOINT_DIR = "checkpoint"
 WEIGHTS_DIR = "weights"
@@ -110,11 +127,31 @@ class TrainError(RuntimeError):
     """Training cannot start or continue (bad data, config mismatch on resume, diverged)."""
 
 
+# The TrainConfig fields that change the compiled step (its cache key, with the method).
+OPTIMIZER_FIELDS = ("optimizer", "learning_rate", "adam_b1", "adam_b2", "schedule", "schedule_every",
+                    "schedule_factor", "clip_norm")
+
+
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
-    """Optimization settings (method defaults come from the module's ``TRAIN`` dict)."""
+    """One training run's configuration: everything it needs besides the method and the data, one
+    field per option of ``jaxdenoise train`` (`TrainConfig.for_method`: the method's ``TRAIN``
+    defaults under given fields). Paths are kept as strings and rate lists as tuples, so the whole
+    configuration is what ``train_config.json`` and the checkpoint record."""
 
-    steps: int = 1000
+    # the run
+    steps: int = 1000  # total steps; a resumed run continues up to it
+    seed: int = 0  # initial params and every batch (drawn from (seed, step))
+    resume: bool = False  # continue from out_dir/checkpoint when it exists
+    init_from: str | None = None  # a weights folder to start from (fine-tuning; ignored when resuming)
+    val_data: str | None = None  # folder or whole-frame export scored during training (module docstring)
+    val_spps: tuple[int, ...] | None = None  # its sampling rates to score (None: all)
+    validate_every: int = 0  # steps between validations (0: only at the end, when val_data is given)
+    checkpoint_every: int = 25
+    max_bad_steps: int = 20  # non-finite steps in a row that stop the run
+    time_limit: float | None = None  # seconds; stop (with a checkpoint) when exceeded
+    progress: bool = True  # a progress bar (and the data pass's)
+    # the optimization
     optimizer: str = "adam"  # "adam" or "rprop" (jaxdenoise.solvers.optim)
     learning_rate: float = 1e-3  # Adam step size; for RPROP the initial step size
     adam_b1: float = 0.9  # Adam's moment decays (Chaitanya 2017: 0.9 / 0.99; Guo 2019: 0.5 / 0.999)
@@ -123,11 +160,35 @@ class TrainConfig:
     schedule_every: int = 1  # the schedule's step count (ramp length, decay interval)
     schedule_factor: float = 1.0  # the schedule's factor (ramp factor, decay factor)
     clip_norm: float | None = None  # clip the gradient's global L2 norm to this (None: off)
-    checkpoint_every: int = 25
-    max_bad_steps: int = 20
-    time_limit: float | None = None  # seconds; stop (with a checkpoint) when exceeded
-    validate_every: int = 0  # steps between validations (0: only at the end, when val_data is given)
     ema: float = 0.0  # decay of an exponential moving average of the params (0: off; module docstring)
+
+    def __post_init__(self) -> None:
+        for name in ("init_from", "val_data"):
+            value = getattr(self, name)
+            if value is not None and not isinstance(value, str):
+                object.__setattr__(self, name, str(value))
+        if self.val_spps is not None:
+            object.__setattr__(self, "val_spps", tuple(int(s) for s in self.val_spps))
+        if self.steps < 0:
+            raise TrainError(f"steps must be >= 0, got {self.steps}")
+        if self.validate_every < 0:
+            raise TrainError(f"validate_every must be >= 0, got {self.validate_every}")
+        if not 0.0 <= self.ema < 1.0:
+            raise TrainError(f"ema must be in [0, 1) (0: off), got {self.ema}")
+
+    @classmethod
+    def for_method(cls, method: Method, **fields: Any) -> "TrainConfig":
+        """The method's ``TRAIN`` defaults, then ``fields``."""
+        merged = {**getattr(method.module, "TRAIN", {}), **fields}
+        unknown = sorted(set(merged) - {f.name for f in dataclasses.fields(cls)})
+        if unknown:
+            raise TrainError(f"unknown training setting(s) {unknown}; TrainConfig has "
+                             f"{[f.name for f in dataclasses.fields(cls)]}")
+        return cls(**merged)
+
+    def optimizer_settings(self) -> tuple:
+        """The fields that change the compiled step (`OPTIMIZER_FIELDS`), as a cache key."""
+        return tuple(getattr(self, f) for f in OPTIMIZER_FIELDS)
 
 
 def make_optimizer(tc: TrainConfig) -> tuple[Callable, Callable]:
@@ -147,12 +208,6 @@ def make_optimizer(tc: TrainConfig) -> tuple[Callable, Callable]:
     raise TrainError(f"optimizer '{tc.optimizer}' is unknown; expected 'adam' or 'rprop'")
 
 
-def _optimizer_key(tc: TrainConfig) -> tuple:
-    """The fields of ``tc`` that change the compiled step (a cache key)."""
-    return (tc.optimizer, tc.learning_rate, tc.adam_b1, tc.adam_b2, tc.schedule, tc.schedule_every,
-            tc.schedule_factor, tc.clip_norm)
-
-
 def restore_like(template: Any, loaded: Any, *, where: str = "checkpoint") -> Any:
     """`checkpoint.restore_like` with its error as a `TrainError` (a checkpoint that does not fit
     the run)."""
@@ -170,27 +225,198 @@ def model_fields(config: Any, cfg_dict: dict) -> dict:
     return {k: v for k, v in cfg_dict.items() if not k.startswith("train_") and k not in training}
 
 
+# -- data ------------------------------------------------------------------------------------------
+
+@dataclasses.dataclass(frozen=True)
+class TrainingData:
+    """A method's training data, read once (``make_dataset``): several runs may share it."""
+
+    source: Path  # the folder or export it was read from (recorded in every output)
+    dataset: Any  # what the module's ``make_dataset`` returned
+
+
+def load_data(method: Method, source: str | os.PathLike, *, progress: bool = True) -> TrainingData:
+    """``method.module.make_dataset(source, method.config)`` (silenced when ``progress`` is off)."""
+    make = method.module.make_dataset
+    quiet = {} if progress or "progress" not in inspect.signature(make).parameters else {"progress": False}
+    return TrainingData(Path(source), make(Path(source), method.config, **quiet))
+
+
+class _Batches:
+    """The batch of each step, ``batch(dataset, step, config, rng((seed, step)))``, drawn ahead on
+    worker threads while the device runs the current step, and placed on the devices."""
+
+    def __init__(self, method: Method, data: TrainingData, run: TrainConfig):
+        self._draw = lambda s: method.module.batch(data.dataset, s, method.config,
+                                                   np.random.default_rng([int(run.seed), s]))
+        self._steps = run.steps
+        workers = batch_workers()
+        self._ahead = PREFETCH * workers
+        self._pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="jaxdenoise-batches")
+        self._pending: dict[int, Any] = {}
+
+    def get(self, step: int) -> Any:
+        for s in range(step, min(step + self._ahead, self._steps)):
+            if s not in self._pending:
+                self._pending[s] = self._pool.submit(self._draw, s)
+        return shard_batch(self._pending.pop(step).result())
+
+    def __enter__(self) -> "_Batches":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+
+# -- state: initialisation, init_from, resume --------------------------------------------------------
+
+@dataclasses.dataclass(frozen=True)
+class Group:
+    """What one kind of step updates: the top-level params ``keys`` (None: all) with the optimizer
+    ``train``; ``name`` None for a method without parameter groups."""
+
+    name: str | None
+    keys: tuple[str, ...] | None
+    train: TrainConfig
+
+
+@dataclasses.dataclass
+class State:
+    """What a run carries from step to step, and what its checkpoint stores."""
+
+    params: Any
+    opt_state: Any  # the optimizer state; with parameter groups {group: state}
+    ema: Any = None  # the weight average (None: off)
+    step: int = 0
+    history: list = dataclasses.field(default_factory=list)  # loss of every finite step
+    bad_steps: int = 0  # non-finite steps skipped, over the whole run
+    validation: list = dataclasses.field(default_factory=list)  # one record per validation
+    best: dict | None = None  # the best validation record (its params are in out_dir/best)
+
+    @property
+    def shipped(self) -> Any:
+        """What validation scores and ``best/`` + ``weights/`` hold: the average when kept."""
+        return self.params if self.ema is None else self.ema
+
+
+def param_groups(method: Method, run: TrainConfig, params: Any) -> list[Group]:
+    """The groups steps alternate over: ``[Group(None, None, run)]``, or one per group the method
+    declares with ``param_groups(config)`` (and ``group_train(config)``: per-group `TrainConfig`
+    overrides, e.g. its own optimizer and step size). Every group names existing, non-FROZEN keys,
+    and no key is in two groups."""
+    module, config = method.module, method.config
+    fn = getattr(module, "param_groups", None)
+    if fn is None:
+        return [Group(None, None, run)]
+    declared = {str(g): tuple(keys) for g, keys in fn(config).items()}
+    frozen = set(getattr(module, "FROZEN", ()))
+    seen: dict[str, str] = {}
+    for g, keys in declared.items():
+        for k in keys:
+            if k not in params or k in frozen:
+                raise TrainError(f"parameter group '{g}' names '{k}', which is not a trainable top-level params entry "
+                                 f"(entries: {sorted(params)}, frozen: {sorted(frozen)})")
+            if k in seen:
+                raise TrainError(f"params entry '{k}' is in two parameter groups ('{seen[k]}' and '{g}')")
+            seen[k] = g
+    overrides = getattr(module, "group_train", lambda c: {})(config)
+    out = []
+    for g, keys in declared.items():
+        try:
+            gtc = dataclasses.replace(run, **overrides.get(g, {}))
+        except TypeError as e:
+            raise TrainError(f"group_train['{g}']: {e}") from None
+        out.append(Group(g, keys, gtc))
+    return out
+
+
+def _saved_config(method: Method, meta: dict) -> Any:
+    """A checkpoint's config with the fields it predates filled by their defaults (a config field
+    added later, with a default that keeps the old behaviour, must not orphan older runs and
+    weights); as saved when it does not build (an unknown key: then it differs, as it should)."""
+    saved = meta.get("config")
+    try:
+        return checkpoint.config_to_dict(checkpoint.config_from_dict(method.module.Config, saved))
+    except (TypeError, ValueError):
+        return saved
+
+
+def initial_state(method: Method, data: TrainingData, run: TrainConfig, out_dir: Path) -> tuple[State, list[Group]]:
+    """The state a run starts from, and its parameter groups: the method's initial params
+    (``init_from_data`` or ``init`` from ``run.seed``), replaced by ``run.init_from``'s weights when
+    given (same model config; training-only fields may differ, `model_fields`), fresh optimizer
+    states, and with ``run.resume`` everything the checkpoint in ``out_dir`` holds (params,
+    optimizer states, weight average, step, histories, the best validation record)."""
+    module, cfg_dict = method.module, checkpoint.config_to_dict(method.config)
+    key = jax.random.PRNGKey(run.seed)
+    if hasattr(module, "init_from_data"):
+        params = module.init_from_data(key, method.config, data.dataset)
+    else:
+        params = module.init(key, method.config)
+    if run.init_from is not None:
+        loaded, meta = checkpoint.load(run.init_from)
+        if meta.get("config") and model_fields(method.config, _saved_config(method, meta)) != \
+                model_fields(method.config, cfg_dict):
+            raise TrainError(f"{run.init_from}: weights were trained with config {meta['config']}; this run is "
+                             f"{method.name!r} with {cfg_dict}")
+        params = restore_like(params, loaded, where=run.init_from)
+    groups = param_groups(method, run, params)
+    if groups[0].name is None:
+        opt_state = make_optimizer(run)[0](params)
+    else:
+        opt_state = {g.name: make_optimizer(g.train)[0]({k: params[k] for k in g.keys}) for g in groups}
+    state = State(params=params, opt_state=opt_state, ema=params if run.ema else None)
+    ckpt_dir = out_dir / CHECKPOINT_DIR
+    if run.resume and (ckpt_dir / checkpoint.PARAMS_FILE).is_file():
+        loaded, meta = checkpoint.load(ckpt_dir)
+        if meta.get("method") != method.name or _saved_config(method, meta) != cfg_dict:
+            raise TrainError(f"{ckpt_dir}: checkpoint is for method {meta.get('method')!r} with config "
+                             f"{meta.get('config')}; this run is {method.name!r} with {cfg_dict}. "
+                             "Use a new --out or the same settings.")
+        template = {"params": params, "opt_state": opt_state}
+        if run.ema and "ema" in loaded:
+            template["ema"] = params
+        restored = restore_like(template, loaded if "ema" in template else
+                                {k: v for k, v in loaded.items() if k != "ema"}, where=str(ckpt_dir))
+        state.params, state.opt_state = restored["params"], restored["opt_state"]
+        if run.ema:
+            state.ema = restored.get("ema", state.params)
+        state.step, state.history = int(meta["step"]), list(meta.get("history", []))
+        state.bad_steps = int(meta.get("bad_steps", 0))
+        state.validation = [v for v in meta.get("validation", []) if v["step"] <= state.step]
+    best_dir = out_dir / BEST_DIR
+    if run.val_data is not None and run.resume and (best_dir / checkpoint.CONFIG_FILE).is_file():
+        state.best = checkpoint.load(best_dir)[1].get("validation")
+    return state, groups
+
+
+# -- one step ---------------------------------------------------------------------------------------
+
 @functools.lru_cache(maxsize=8)
 def _ema_fn(decay: float):
     """``(e, p) -> decay * e + (1 - decay) * p`` leaf by leaf, jitted (the trainer's weight average)."""
     return jax.jit(lambda e, p: jax.tree_util.tree_map(lambda a, b: decay * a + (1.0 - decay) * b, e, p))
 
 
-@functools.lru_cache(maxsize=16)
-def _step_fn(method_name: str, config: Any, opt_key: tuple, group: str | None = None,
-             keys: tuple[str, ...] | None = None):
-    """The jitted training step, cached so repeated runs with the same settings compile once.
+def step_fn(method: Method, tc: TrainConfig, group: str | None = None, keys: tuple[str, ...] | None = None):
+    """The jitted training step ``(params, opt_state, batch) -> (params, opt_state, loss, finite)``,
+    cached on the resolved method and ``tc``'s optimizer settings, so repeated runs with the same
+    settings compile once.
 
     ``loss`` may return a scalar or ``(scalar, aux)``; an ``aux`` dict with ``"updates"`` (a nested dict
     of params leaves, e.g. BatchNorm running statistics from the forward pass, `jaxdenoise.nn.state`)
     replaces those leaves after the optimizer step. The gradient is clipped to
     ``clip_norm`` (global L2 norm) when set. With ``group`` (a parameter group, `param_groups`), the
     step differentiates ``loss(..., group=group)`` with respect to the top-level params ``keys`` of
-    that group only and updates them with the group's optimizer state."""
-    module = get(method_name, config).module
-    fields = ("optimizer", "learning_rate", "adam_b1", "adam_b2", "schedule", "schedule_every",
-              "schedule_factor", "clip_norm")
-    tc = TrainConfig(**dict(zip(fields, opt_key)))
+    that group only and updates them with the group's optimizer state (``opt_state`` is then that
+    group's). A non-finite loss or gradient keeps the params and optimizer state as they were."""
+    return _compiled_step(method, tc.optimizer_settings(), group, keys)
+
+
+@functools.lru_cache(maxsize=16)
+def _compiled_step(method: Method, settings: tuple, group: str | None, keys: tuple[str, ...] | None):
+    module, config = method.module, method.config
+    tc = TrainConfig(**dict(zip(OPTIMIZER_FIELDS, settings)))
     _, opt_update = make_optimizer(tc)
     frozen = tuple(getattr(module, "FROZEN", ()))
 
@@ -200,7 +426,7 @@ def _step_fn(method_name: str, config: Any, opt_key: tuple, group: str | None = 
         return (out[0], out[1]) if isinstance(out, tuple) else (out, None)
 
     @jax.jit
-    def step_fn(p, s, b):
+    def step(p, s, b):
         trained = {k: p[k] for k in keys} if group is not None else p
         (value, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(trained, p, b)
         if tc.clip_norm is not None:
@@ -220,43 +446,78 @@ def _step_fn(method_name: str, config: Any, opt_key: tuple, group: str | None = 
             try:
                 new_p = merge_updates(new_p, updates)
             except ValueError as e:
-                raise MethodError(f"method '{method_name}': loss aux updates do not fit the params: {e}") from None
+                raise MethodError(f"method '{method.name}': loss aux updates do not fit the params: {e}") from None
         # A non-finite step keeps the previous params and optimizer state (module docstring).
         keep = lambda a, b_: jnp.where(finite, a, b_)
         return jax.tree_util.tree_map(keep, new_p, p), jax.tree_util.tree_map(keep, new_s, s), value, finite
 
-    return step_fn
+    return step
 
 
-def _param_groups(module: Any, config: Any, params: Any, tc: TrainConfig) -> dict | None:
-    """``{group: (top-level params keys, TrainConfig)}`` when the method declares
-    ``param_groups(config)`` (and optionally ``group_train(config)``: per-group TrainConfig overrides,
-    e.g. its own optimizer and step size); None otherwise. Every group names existing, non-FROZEN
-    keys, and no key is in two groups."""
-    fn = getattr(module, "param_groups", None)
-    if fn is None:
-        return None
-    declared = {str(g): tuple(keys) for g, keys in fn(config).items()}
-    frozen = set(getattr(module, "FROZEN", ()))
-    seen: dict[str, str] = {}
-    for g, keys in declared.items():
-        for k in keys:
-            if k not in params or k in frozen:
-                raise TrainError(f"parameter group '{g}' names '{k}', which is not a trainable top-level params entry "
-                                 f"(entries: {sorted(params)}, frozen: {sorted(frozen)})")
-            if k in seen:
-                raise TrainError(f"params entry '{k}' is in two parameter groups ('{seen[k]}' and '{g}')")
-            seen[k] = g
-    overrides = getattr(module, "group_train", lambda c: {})(config)
-    out = {}
-    for g, keys in declared.items():
-        try:
-            gtc = dataclasses.replace(tc, **overrides.get(g, {}))
-        except TypeError as e:
-            raise TrainError(f"group_train['{g}']: {e}") from None
-        out[g] = (keys, gtc)
-    return out
+Stepper = Callable[[State, Any], tuple[float, bool]]
 
+
+def make_stepper(method: Method, run: TrainConfig, groups: list[Group]) -> Stepper:
+    """``advance(state, batch) -> (loss, finite)``: one step at ``state.step`` (with parameter groups,
+    group ``state.step mod n``), in place: params and optimizer state, the loss history and the
+    weight average after a finite step, the count of skipped ones, and the step counter."""
+    fns = [step_fn(method, g.train, g.name, g.keys) for g in groups]
+    average = _ema_fn(run.ema) if run.ema else None
+
+    def advance(state: State, batch: Any) -> tuple[float, bool]:
+        i = state.step % len(groups)
+        if groups[i].name is None:
+            state.params, state.opt_state, value, ok = fns[i](state.params, state.opt_state, batch)
+        else:
+            name = groups[i].name
+            state.params, state.opt_state[name], value, ok = fns[i](state.params, state.opt_state[name], batch)
+        value, ok = float(value), bool(ok)
+        if ok:
+            state.history.append(value)
+            if average is not None:
+                state.ema = average(state.ema, state.params)
+        else:
+            state.bad_steps += 1
+        state.step += 1
+        return value, ok
+
+    return advance
+
+
+# -- validation and checkpoints -----------------------------------------------------------------------
+
+def validation_round(method: Method, frames: list[dict], state: State) -> dict:
+    """The validation record of ``state`` at its step: `validate` of what it ships (the weight
+    average when kept, with the last iterate's score as ``raw``) and the seconds it took."""
+    t = time.perf_counter()
+    record = {"step": state.step, **validate(method, state.shipped, frames)}
+    if state.ema is not None:
+        raw = validate(method, state.params, frames)
+        record["raw"] = {"relmse": raw["relmse"], "per_spp": raw["per_spp"]}
+    record["seconds"] = time.perf_counter() - t
+    return record
+
+
+def save_checkpoint(out_dir: Path, method: Method, run: TrainConfig, state: State) -> None:
+    """``out_dir/checkpoint``: everything `initial_state` resumes from (atomic)."""
+    stored = {"params": state.params, "opt_state": state.opt_state}
+    if state.ema is not None:
+        stored["ema"] = state.ema
+    checkpoint.save(out_dir / CHECKPOINT_DIR, stored, method.config,
+                    extra={"method": method.name, "step": state.step, "history": state.history,
+                           "bad_steps": state.bad_steps, "train": dataclasses.asdict(run), "seed": int(run.seed),
+                           "validation": state.validation})
+
+
+def save_weights(folder: Path, method: Method, run: TrainConfig, data: TrainingData, state: State,
+                 **extra: Any) -> None:
+    """What ``state`` ships, loadable like shipped weights, with where it came from."""
+    checkpoint.save(folder, state.shipped, method.config,
+                    extra={"method": method.name, "steps": state.step, "data": str(data.source),
+                           "seed": int(run.seed), **extra})
+
+
+# -- devices and validation frames ------------------------------------------------------------------
 
 def shard_batch(batch: Any, devices: list | None = None) -> Any:
     """Data parallelism (DESIGN.md "Methods": the trainer runs over all local devices): every batch
@@ -408,218 +669,92 @@ def summary_line(summary: dict) -> str:
     return line
 
 
-def _saved_config(module: Any, meta: dict) -> Any:
-    """A checkpoint's config with the fields it predates filled by their defaults (a config field
-    added later, with a default that keeps the old behaviour, must not orphan older runs and
-    weights); as saved when it does not build (an unknown key: then it differs, as it should)."""
-    saved = meta.get("config")
-    try:
-        return checkpoint.config_to_dict(checkpoint.config_from_dict(module.Config, saved))
-    except (TypeError, ValueError):
-        return saved
-
-
-def train(method_name: str, data_dir: str | Path, out_dir: str | Path, *, resume: bool = False,
-          steps: int | None = None, seed: int = 0, progress: bool = True, config: Any = None,
-          train_config: TrainConfig | None = None, dataset: Any = None, val_data: str | Path | None = None,
-          val_spps: Any = None, init_from: str | Path | None = None, **train_overrides: Any) -> dict:
-    """Train a registered method on ``data_dir``; writes checkpoints and weights under ``out_dir``.
-
-    ``steps`` is the total number of steps of the run (a resumed run continues up to it);
-    ``config`` replaces the method's default config; ``train_config`` / ``train_overrides``
-    (fields of `TrainConfig`) adjust the optimization; ``dataset`` reuses the result of an earlier
-    ``make_dataset`` (experiments that train several variants on the same data); ``val_data`` /
-    ``val_spps`` turn on validation (module docstring); ``init_from`` (a weights folder of the same
-    method and model config, e.g. shipped weights; training-only fields may differ, `model_fields`)
-    replaces the initial params, frozen entries included, so a run can fine-tune them (ignored when
-    resuming). Returns the summary.
-    """
-    method = get(method_name, config)
-    module = method.module
-    if not method.trainable:
-        raise MethodError(f"method '{method_name}' cannot be trained here: its module needs loss, "
-                          "make_dataset and batch (see jaxdenoise.train)")
-    base = dataclasses.asdict(train_config) if train_config is not None else dict(getattr(module, "TRAIN", {}))
-    base.update(train_overrides)
-    if steps is not None:
-        base["steps"] = int(steps)
-    tc = TrainConfig(**base)
-    if tc.steps < 0:
-        raise TrainError(f"steps must be >= 0, got {tc.steps}")
-    if tc.validate_every < 0:
-        raise TrainError(f"validate_every must be >= 0, got {tc.validate_every}")
-    if not 0.0 <= tc.ema < 1.0:
-        raise TrainError(f"ema must be in [0, 1) (0: off), got {tc.ema}")
-    data_dir, out_dir = Path(data_dir), Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    cfg_dict = checkpoint.config_to_dict(method.config)
-    resolved = {"method": method_name, "config": cfg_dict, "train": dataclasses.asdict(tc),
-                "data": str(data_dir), "seed": int(seed),
-                "val_data": None if val_data is None else str(val_data),
-                "val_spps": None if val_spps is None else [int(x) for x in val_spps],
-                "init_from": None if init_from is None else str(init_from)}
-    write_json(out_dir / "train_config.json", resolved)
-
-    t0 = time.perf_counter()
-    val_frames = load_validation(method, val_data, val_spps) if val_data is not None else None
-    if dataset is None:
-        quiet = {} if progress or "progress" not in inspect.signature(module.make_dataset).parameters \
-            else {"progress": False}  # --quiet silences the data pass too
-        dataset = module.make_dataset(data_dir, method.config, **quiet)
-    key = jax.random.PRNGKey(seed)
-    if hasattr(module, "init_from_data"):
-        params = module.init_from_data(key, method.config, dataset)
-    else:
-        params = module.init(key, method.config)
-    if init_from is not None:
-        loaded, meta = checkpoint.load(init_from)
-        if meta.get("config") and model_fields(method.config, _saved_config(module, meta)) != \
-                model_fields(method.config, cfg_dict):
-            raise TrainError(f"{init_from}: weights were trained with config {meta['config']}; this run is "
-                             f"{method_name!r} with {cfg_dict}")
-        params = restore_like(params, loaded, where=str(init_from))
-    groups = _param_groups(module, method.config, params, tc)
-    if groups is None:
-        opt_state = make_optimizer(tc)[0](params)
-    else:
-        opt_state = {g: make_optimizer(gtc)[0]({k: params[k] for k in keys}) for g, (keys, gtc) in groups.items()}
-    start, history, bad_total, val_history = 0, [], 0, []
-    ema_params = params if tc.ema else None
-    ckpt_dir = out_dir / CHECKPOINT_DIR
-    if resume and (ckpt_dir / checkpoint.PARAMS_FILE).is_file():
-        loaded, meta = checkpoint.load(ckpt_dir)
-        if meta.get("method") != method_name or _saved_config(module, meta) != cfg_dict:
-            raise TrainError(f"{ckpt_dir}: checkpoint is for method {meta.get('method')!r} with config "
-                             f"{meta.get('config')}; this run is {method_name!r} with {cfg_dict}. "
-                             "Use a new --out or the same settings.")
-        template = {"params": params, "opt_state": opt_state}
-        if tc.ema and "ema" in loaded:
-            template["ema"] = params
-        state = restore_like(template, loaded if "ema" in template else {k: v for k, v in loaded.items() if k != "ema"},
-                             where=str(ckpt_dir))
-        params, opt_state = state["params"], state["opt_state"]
-        if tc.ema:
-            ema_params = state.get("ema", params)
-        start, history, bad_total = int(meta["step"]), list(meta.get("history", [])), int(meta.get("bad_steps", 0))
-        val_history = [v for v in meta.get("validation", []) if v["step"] <= start]
-    best_dir = out_dir / BEST_DIR
-    best = None
-    if val_frames is not None and resume and (best_dir / checkpoint.CONFIG_FILE).is_file():
-        best = checkpoint.load(best_dir)[1].get("validation")
-    if groups is None:
-        step_fn = _step_fn(method_name, method.config, _optimizer_key(tc))
-    else:
-        order = list(groups)
-        group_fns = {g: _step_fn(method_name, method.config, _optimizer_key(gtc), g, keys)
-                     for g, (keys, gtc) in groups.items()}
-
-    ema_fn = _ema_fn(tc.ema) if tc.ema else None
-
-    def shipped():  # what validation scores and best/ + weights/ hold
-        return params if ema_params is None else ema_params
-
-    def save(step: int) -> None:
-        state = {"params": params, "opt_state": opt_state}
-        if ema_params is not None:
-            state["ema"] = ema_params
-        checkpoint.save(ckpt_dir, state, method.config,
-                        extra={"method": method_name, "step": step, "history": history,
-                               "bad_steps": bad_total, "train": dataclasses.asdict(tc), "seed": int(seed),
-                               "validation": val_history})
-
-    def run_validation(step: int) -> None:
-        nonlocal best
-        if val_frames is None or (val_history and val_history[-1]["step"] == step):
-            return
-        t = time.perf_counter()
-        score = {"step": step, **validate(method, shipped(), val_frames)}
-        if ema_params is not None:
-            raw = validate(method, params, val_frames)
-            score["raw"] = {"relmse": raw["relmse"], "per_spp": raw["per_spp"]}
-        score["seconds"] = time.perf_counter() - t
-        val_history.append(score)
-        if best is None or score["relmse"] < best["relmse"]:
-            best = score
-            checkpoint.save(best_dir, shipped(), method.config,
-                            extra={"method": method_name, "steps": step, "data": str(data_dir), "seed": int(seed),
-                                   "val_data": str(val_data), "validation": score})
-        if bar is not None:
-            bar.write(f"step {step}: validation RelMSE {score['relmse']:.5g} (best {best['relmse']:.5g} "
-                      f"at step {best['step']}; {score['seconds']:.0f} s)")
-
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-        bar = tqdm(total=tc.steps, initial=min(start, tc.steps), desc=f"train {method_name}", unit="step")
-    bad_run = 0
-    step = start
-    t_loop = time.perf_counter()
-
-    def draw(s: int) -> Any:  # a pure function of (seed, step): the same batches on resume
-        return module.batch(dataset, s, method.config, np.random.default_rng([int(seed), s]))
-
-    # The next batches are drawn on worker threads while the device runs the current step.
-    workers = batch_workers()
-    ahead = PREFETCH * workers
-    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="jaxdenoise-batches")
-    pending: dict[int, Any] = {}
-    try:
-        if init_from is not None and start == 0:
-            run_validation(0)  # the starting weights' score: fine-tuning keeps them unless it beats them
-        for step in range(start, tc.steps):
-            for s in range(step, min(step + ahead, tc.steps)):
-                if s not in pending:
-                    pending[s] = pool.submit(draw, s)
-            b = shard_batch(pending.pop(step).result())
-            if groups is None:
-                params, opt_state, value, ok = step_fn(params, opt_state, b)
-            else:  # parameter groups in alternation: step t updates group t mod (number of groups)
-                g = order[step % len(order)]
-                params, opt_state[g], value, ok = group_fns[g](params, opt_state[g], b)
-            value = float(value)
-            if bool(ok):
-                bad_run = 0
-                history.append(value)
-                if ema_fn is not None:
-                    ema_params = ema_fn(ema_params, params)
-            else:
-                bad_run += 1
-                bad_total += 1
-                if bad_run >= tc.max_bad_steps:
-                    raise TrainError(f"{bad_run} non-finite steps in a row at step {step}; training diverged")
-            if bar is not None:
-                bar.update(1)
-                bar.set_postfix(loss=f"{value:.4g}")
-            if tc.validate_every and (step + 1) % tc.validate_every == 0:
-                run_validation(step + 1)
-            if (step + 1) % tc.checkpoint_every == 0:
-                save(step + 1)
-            if tc.time_limit is not None and time.perf_counter() - t_loop > tc.time_limit:
-                step += 1
-                break
-        else:
-            step = max(start, tc.steps)
-        run_validation(step)
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)
-        if bar is not None:
-            bar.close()
-    save(step)
-    checkpoint.save(out_dir / WEIGHTS_DIR, shipped(), method.config,
-                    extra={"method": method_name, "steps": step, "data": str(data_dir), "seed": int(seed),
-                           "final_loss": _final(history)})
-    summary = {"method": method_name, "steps_done": step, "steps_this_run": step - start,
-               "final_loss": _final(history), "seconds": time.perf_counter() - t0,
-               "bad_steps": bad_total, "out": str(out_dir), "weights": str(out_dir / WEIGHTS_DIR)}
-    if val_frames is not None:
-        summary.update(best=best, best_weights=str(best_dir), validation=val_history)
-    summary["line"] = summary_line(summary)
-    write_json(out_dir / "summary.json", summary)
-    return summary
-
-
 def _final(history: list[float], window: int = 10) -> float:
     """Mean loss of the last ``window`` steps (one mini-batch is noisy); NaN before any step."""
     if not history:
         return math.nan
     return float(np.mean(history[-window:]))
+
+
+# -- the loop -------------------------------------------------------------------------------------------
+
+def train(method: Method, data: str | os.PathLike | TrainingData, out_dir: str | os.PathLike,
+          run: TrainConfig | None = None) -> dict:
+    """Train the resolved ``method`` on ``data`` (a folder or export, or `load_data`'s result) with
+    ``run`` (default: `TrainConfig.for_method(method)`); writes checkpoints and weights under
+    ``out_dir`` (module docstring) and returns the summary."""
+    if not method.trainable:
+        raise MethodError(f"method '{method.name}' cannot be trained here: its module needs loss, "
+                          "make_dataset and batch (see jaxdenoise.train)")
+    run = TrainConfig.for_method(method) if run is None else run
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    source = data.source if isinstance(data, TrainingData) else Path(data)
+    write_json(out_dir / "train_config.json",
+               {"method": method.name, "config": checkpoint.config_to_dict(method.config),
+                "train": dataclasses.asdict(run), "data": str(source), "seed": int(run.seed),
+                "val_data": run.val_data, "val_spps": None if run.val_spps is None else list(run.val_spps),
+                "init_from": run.init_from})
+
+    # setup
+    t0 = time.perf_counter()
+    frames = load_validation(method, run.val_data, run.val_spps) if run.val_data is not None else None
+    if not isinstance(data, TrainingData):
+        data = load_data(method, source, progress=run.progress)
+    state, groups = initial_state(method, data, run, out_dir)
+    start = state.step
+    advance = make_stepper(method, run, groups)
+    bar = None
+    if run.progress:
+        from tqdm.auto import tqdm
+        bar = tqdm(total=run.steps, initial=min(start, run.steps), desc=f"train {method.name}", unit="step")
+
+    def validate_now() -> None:
+        if frames is None or (state.validation and state.validation[-1]["step"] == state.step):
+            return
+        record = validation_round(method, frames, state)
+        state.validation.append(record)
+        if state.best is None or record["relmse"] < state.best["relmse"]:
+            state.best = record
+            save_weights(out_dir / BEST_DIR, method, run, data, state, val_data=run.val_data, validation=record)
+        if bar is not None:
+            bar.write(f"step {state.step}: validation RelMSE {record['relmse']:.5g} (best {state.best['relmse']:.5g} "
+                      f"at step {state.best['step']}; {record['seconds']:.0f} s)")
+
+    # loop
+    t_loop, bad_run = time.perf_counter(), 0
+    try:
+        with _Batches(method, data, run) as batches:
+            if run.init_from is not None and start == 0:
+                validate_now()  # the starting weights' score: fine-tuning keeps them unless it beats them
+            while state.step < run.steps:
+                value, ok = advance(state, batches.get(state.step))
+                bad_run = 0 if ok else bad_run + 1
+                if bad_run >= run.max_bad_steps:
+                    raise TrainError(f"{bad_run} non-finite steps in a row at step {state.step - 1}; "
+                                     "training diverged")
+                if bar is not None:
+                    bar.update(1)
+                    bar.set_postfix(loss=f"{value:.4g}")
+                if run.validate_every and state.step % run.validate_every == 0:
+                    validate_now()
+                if state.step % run.checkpoint_every == 0:
+                    save_checkpoint(out_dir, method, run, state)
+                if run.time_limit is not None and time.perf_counter() - t_loop > run.time_limit:
+                    break
+            validate_now()
+    finally:
+        if bar is not None:
+            bar.close()
+
+    # finish
+    save_checkpoint(out_dir, method, run, state)
+    save_weights(out_dir / WEIGHTS_DIR, method, run, data, state, final_loss=_final(state.history))
+    summary = {"method": method.name, "steps_done": state.step, "steps_this_run": state.step - start,
+               "final_loss": _final(state.history), "seconds": time.perf_counter() - t0,
+               "bad_steps": state.bad_steps, "out": str(out_dir), "weights": str(out_dir / WEIGHTS_DIR)}
+    if frames is not None:
+        summary.update(best=state.best, best_weights=str(out_dir / BEST_DIR), validation=state.validation)
+    summary["line"] = summary_line(summary)
+    write_json(out_dir / "summary.json", summary)
+    return summary

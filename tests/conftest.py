@@ -53,6 +53,16 @@ def make_shot(folder, ref: np.ndarray, renders: dict[int, Buffers]) -> None:
                       {"render_seconds": 0.01 * spp})
 
 
+def fit(name: str, data, out, *, config=None, **run):
+    """`jaxdenoise.train.train` as the CLI calls it: the method resolved once (``config`` replacing
+    its default), the run configured by `TrainConfig.for_method` with ``run``'s fields."""
+    from jaxdenoise.methods import get
+    from jaxdenoise.train import TrainConfig, train
+
+    method = get(name, config)
+    return train(method, data, out, TrainConfig.for_method(method, **run))
+
+
 @contextlib.contextmanager
 def registered(name: str, module: str):
     """A test-only method (a module under tests/) registered for the duration of the block."""

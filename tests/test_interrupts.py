@@ -115,9 +115,9 @@ def test_dataset_killed_at_random_moments(tmp_path, dataset_reference, seed):
 TRAIN = """
 import sys
 from test_train import CFG
-from jaxdenoise.train import train
-train("lbf", sys.argv[1], sys.argv[2], steps=12, config=CFG, progress=False, checkpoint_every=1,
-      resume=True, optimizer="adam", learning_rate=1e-2)
+from conftest import fit
+fit("lbf", sys.argv[1], sys.argv[2], steps=12, config=CFG, progress=False, checkpoint_every=1,
+    resume=True, optimizer="adam", learning_rate=1e-2)
 """
 
 

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conftest import registered
+from conftest import fit, registered
 from jax.test_util import check_grads
 
 from jaxdenoise import nn
@@ -373,11 +373,9 @@ def test_trainer_merges_batchnorm_statistics(tmp_path):
     """The loss returns the running statistics as aux updates; after 20 steps the running mean is the
     exponential average (momentum 0.9) of the 20 batches' means, recomputed here by hand."""
     from jaxdenoise import checkpoint
-    from jaxdenoise.train import train
-
     with registered("fakebn", "fake_bn_method"):
-        train("fakebn", tmp_path, tmp_path / "run", steps=20, progress=False, optimizer="adam",
-              learning_rate=1e-9, checkpoint_every=20)
+        fit("fakebn", tmp_path, tmp_path / "run", steps=20, progress=False, optimizer="adam",
+            learning_rate=1e-9, checkpoint_every=20)
     p, _ = checkpoint.load(tmp_path / "run" / "weights")
     import fake_bn_method as fake
 

@@ -11,9 +11,9 @@ import pytest
 
 from jaxdenoise import checkpoint
 from jaxdenoise.methods import lbf
-from jaxdenoise.train import TrainError, restore_like, train  # restore_like: checkpoint's, as TrainError
+from jaxdenoise.train import TrainError, restore_like  # restore_like: checkpoint's, as TrainError
 
-from conftest import registered, synthetic_frame
+from conftest import fit, registered, synthetic_frame
 
 CFG = lbf.Config(radius=2, prefilter=False, spike_removal=False, features=("normal", "albedo"),
                  train_spps=(4, 8), train_crop=8, train_scenes_per_step=2)
@@ -50,15 +50,15 @@ def _params(run):
 
 
 def test_train_writes_weights_config_and_resumes_identically(dataset, tmp_path):
-    full = train("lbf", dataset, tmp_path / "full", steps=4, config=CFG, progress=False, checkpoint_every=2)
+    full = fit("lbf", dataset, tmp_path / "full", steps=4, config=CFG, progress=False, checkpoint_every=2)
     assert full["steps_done"] == 4 and np.isfinite(full["final_loss"])  # exact step count
     resolved = json.loads((tmp_path / "full" / "train_config.json").read_text())
     assert resolved["config"]["train_spps"] == [4, 8] and resolved["train"]["optimizer"] == "rprop"  # exact
 
-    part = train("lbf", dataset, tmp_path / "part", steps=2, config=CFG, progress=False, checkpoint_every=2)
+    part = fit("lbf", dataset, tmp_path / "part", steps=2, config=CFG, progress=False, checkpoint_every=2)
     assert part["steps_done"] == 2
-    resumed = train("lbf", dataset, tmp_path / "part", steps=4, config=CFG, progress=False, checkpoint_every=2,
-                    resume=True)
+    resumed = fit("lbf", dataset, tmp_path / "part", steps=4, config=CFG, progress=False, checkpoint_every=2,
+                  resume=True)
     assert resumed["steps_this_run"] == 2 and resumed["steps_done"] == 4  # exact
     a, meta = _params(tmp_path / "full")
     b, _ = _params(tmp_path / "part")
@@ -70,24 +70,24 @@ def test_train_writes_weights_config_and_resumes_identically(dataset, tmp_path):
 
 
 def test_resume_with_other_config_fails(dataset, tmp_path):
-    train("lbf", dataset, tmp_path / "run", steps=1, config=CFG, progress=False)
+    fit("lbf", dataset, tmp_path / "run", steps=1, config=CFG, progress=False)
     other = dataclasses.replace(CFG, hidden=(4,))
     with pytest.raises(TrainError, match="checkpoint is for"):
-        train("lbf", dataset, tmp_path / "run", steps=2, config=other, progress=False, resume=True)
+        fit("lbf", dataset, tmp_path / "run", steps=2, config=other, progress=False, resume=True)
     # a checkpoint saved before a config field existed (its default keeps the old behaviour) resumes
     cfile = tmp_path / "run" / "checkpoint" / checkpoint.CONFIG_FILE
     meta = json.loads(cfile.read_text())
     field = next(f.name for f in dataclasses.fields(lbf.Config) if getattr(CFG, f.name) == getattr(lbf.Config(), f.name))
     del meta["config"][field]
     cfile.write_text(json.dumps(meta))
-    assert train("lbf", dataset, tmp_path / "run", steps=2, config=CFG, progress=False, resume=True)["steps_this_run"] == 1
+    assert fit("lbf", dataset, tmp_path / "run", steps=2, config=CFG, progress=False, resume=True)["steps_this_run"] == 1
 
 
 def test_missing_data_and_bad_optimizer_raise(tmp_path, dataset):
     with pytest.raises(FileNotFoundError, match="reference.exr"):
-        train("lbf", tmp_path, tmp_path / "out", steps=1, config=CFG, progress=False)
+        fit("lbf", tmp_path, tmp_path / "out", steps=1, config=CFG, progress=False)
     with pytest.raises(TrainError, match="optimizer"):
-        train("lbf", dataset, tmp_path / "o2", steps=1, config=CFG, progress=False, optimizer="sgd")
+        fit("lbf", dataset, tmp_path / "o2", steps=1, config=CFG, progress=False, optimizer="sgd")
 
 
 def test_restore_like_checks_shapes():
@@ -103,7 +103,7 @@ def test_validation_keeps_the_best_params_and_resumes_its_record(dataset, tmp_pa
     from jaxdenoise.train import load_validation, validate
 
     kw = dict(config=CFG, progress=False, checkpoint_every=2, validate_every=2, val_data=dataset, val_spps=[4])
-    full = train("lbf", dataset, tmp_path / "full", steps=4, **kw)
+    full = fit("lbf", dataset, tmp_path / "full", steps=4, **kw)
     steps = [v["step"] for v in full["validation"]]
     assert steps == [2, 4]  # every 2 steps; the end (step 4) is not scored twice
     best = min(full["validation"], key=lambda v: v["relmse"])
@@ -119,8 +119,8 @@ def test_validation_keeps_the_best_params_and_resumes_its_record(dataset, tmp_pa
     np.testing.assert_allclose(rescored["relmse"], best["relmse"], rtol=1e-6)
     assert "best validation RelMSE" in full["line"]
 
-    train("lbf", dataset, tmp_path / "part", steps=2, **kw)
-    resumed = train("lbf", dataset, tmp_path / "part", steps=4, resume=True, **kw)
+    fit("lbf", dataset, tmp_path / "part", steps=2, **kw)
+    resumed = fit("lbf", dataset, tmp_path / "part", steps=4, resume=True, **kw)
     assert [v["step"] for v in resumed["validation"]] == steps
     for a, b in zip(resumed["validation"], full["validation"]):
         np.testing.assert_allclose(a["relmse"], b["relmse"], rtol=1e-5)  # same params, same scores
@@ -130,7 +130,7 @@ def test_weight_average_is_the_ema_of_the_iterates_and_resumes(dataset, tmp_path
     kw = dict(config=CFG, progress=False, checkpoint_every=1)
 
     def iterate(n):  # the same batches in every run: p0 (init) .. p3 are the iterates of one run
-        train("lbf", dataset, tmp_path / f"plain{n}", steps=n, **kw)
+        fit("lbf", dataset, tmp_path / f"plain{n}", steps=n, **kw)
         return _params(tmp_path / f"plain{n}")[0]
 
     iterates = [iterate(n) for n in range(4)]
@@ -138,7 +138,7 @@ def test_weight_average_is_the_ema_of_the_iterates_and_resumes(dataset, tmp_path
     for p in iterates[1:]:
         expect = jax.tree_util.tree_map(lambda e, x: 0.5 * e + 0.5 * x, expect, p)
     val = dict(val_data=dataset, val_spps=[4], validate_every=3)
-    full = train("lbf", dataset, tmp_path / "ema", steps=3, ema=0.5, **kw, **val)
+    full = fit("lbf", dataset, tmp_path / "ema", steps=3, ema=0.5, **kw, **val)
     got, _ = _params(tmp_path / "ema")
     for x, y in zip(jax.tree_util.tree_leaves(expect), jax.tree_util.tree_leaves(got)):
         np.testing.assert_allclose(y, x, rtol=1e-5, atol=1e-7)
@@ -147,12 +147,12 @@ def test_weight_average_is_the_ema_of_the_iterates_and_resumes(dataset, tmp_path
     rec = full["validation"][-1]
     assert set(rec["raw"]) == {"relmse", "per_spp"} and rec["raw"]["relmse"] != rec["relmse"]
     # interrupted after step 2 and resumed: the checkpoint carries the average
-    train("lbf", dataset, tmp_path / "part", steps=2, ema=0.5, **kw)
-    train("lbf", dataset, tmp_path / "part", steps=3, ema=0.5, resume=True, **kw)
+    fit("lbf", dataset, tmp_path / "part", steps=2, ema=0.5, **kw)
+    fit("lbf", dataset, tmp_path / "part", steps=3, ema=0.5, resume=True, **kw)
     for x, y in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(_params(tmp_path / "part")[0])):
         np.testing.assert_allclose(y, x, rtol=1e-5, atol=1e-7)
     with pytest.raises(TrainError, match="ema"):
-        train("lbf", dataset, tmp_path / "bad", steps=1, ema=1.0, **kw)
+        fit("lbf", dataset, tmp_path / "bad", steps=1, ema=1.0, **kw)
 
 
 def test_validation_data_errors_name_the_folder_and_rate(dataset, tmp_path):
@@ -162,9 +162,9 @@ def test_validation_data_errors_name_the_folder_and_rate(dataset, tmp_path):
     with pytest.raises(TrainError, match=r"no validation render at spp \[16\]"):
         load_validation(get("lbf", CFG), dataset, [16])
     with pytest.raises(FileNotFoundError, match="no shot found"):
-        train("lbf", dataset, tmp_path / "o", steps=1, config=CFG, progress=False, val_data=tmp_path)
+        fit("lbf", dataset, tmp_path / "o", steps=1, config=CFG, progress=False, val_data=tmp_path)
     with pytest.raises(TrainError, match="validate_every"):
-        train("lbf", dataset, tmp_path / "o2", steps=1, config=CFG, progress=False, validate_every=-1)
+        fit("lbf", dataset, tmp_path / "o2", steps=1, config=CFG, progress=False, validate_every=-1)
 
 
 def test_cli_train_rejects_bad_validation_rates(capsys):
@@ -179,10 +179,10 @@ def test_fine_tuning_starts_from_the_given_weights_and_scores_them_first(dataset
     from jaxdenoise.methods import get
     from jaxdenoise.train import load_validation, validate
 
-    train("lbf", dataset, tmp_path / "base", steps=2, config=CFG, progress=False)
+    fit("lbf", dataset, tmp_path / "base", steps=2, config=CFG, progress=False)
     base, _ = checkpoint.load(tmp_path / "base" / "weights")
-    tuned = train("lbf", dataset, tmp_path / "tuned", steps=2, config=CFG, progress=False, validate_every=2,
-                  val_data=dataset, val_spps=[4, 8], init_from=tmp_path / "base" / "weights")
+    tuned = fit("lbf", dataset, tmp_path / "tuned", steps=2, config=CFG, progress=False, validate_every=2,
+                val_data=dataset, val_spps=[4, 8], init_from=tmp_path / "base" / "weights")
     assert [v["step"] for v in tuned["validation"]] == [0, 2]  # the starting weights are scored first
     method = get("lbf", CFG)
     start = validate(method, restore_like(base, base), load_validation(method, dataset, [4, 8]))
@@ -192,8 +192,33 @@ def test_fine_tuning_starts_from_the_given_weights_and_scores_them_first(dataset
     assert not np.allclose(out["net"]["0"]["w"], base["net"]["0"]["w"])  # and the network was trained from there
     # another network shape cannot start from these weights
     with pytest.raises(TrainError, match="trained with config"):
-        train("lbf", dataset, tmp_path / "o", steps=1, config=dataclasses.replace(CFG, hidden=(4,)),
-              progress=False, init_from=tmp_path / "base" / "weights")
+        fit("lbf", dataset, tmp_path / "o", steps=1, config=dataclasses.replace(CFG, hidden=(4,)),
+            progress=False, init_from=tmp_path / "base" / "weights")
+
+
+def test_a_cli_run_resolves_the_method_once(dataset, tmp_path, monkeypatch):
+    """`jaxdenoise train` with validation, EMA and a resume: the registry is read once (the CLI's
+    `methods.get`); initialisation, parameter groups, the step, validation and resume receive the
+    resolved `Method`."""
+    from jaxdenoise import methods
+    from jaxdenoise.cli import main
+
+    class Counting(dict):
+        reads = 0
+
+        def __getitem__(self, name):
+            Counting.reads += 1
+            return super().__getitem__(name)
+
+    monkeypatch.setattr(methods, "_REGISTRY", Counting(methods._REGISTRY))  # restored after the test
+    # "lbf" with the tiny config: the same Method as the tests above, so their compiled steps are reused
+    methods.register("lbf", "jaxdenoise.methods.lbf", **dataclasses.asdict(CFG))
+    args = ["train", "lbf", "--data", str(dataset), "--out", str(tmp_path / "run"), "--val-data", str(dataset),
+            "--val-spps", "4", "--validate-every", "1", "--ema", "0.5", "--quiet"]
+    assert main(args + ["--steps", "2"]) == 0 and Counting.reads == 1  # exact
+    assert main(args + ["--steps", "3", "--resume"]) == 0 and Counting.reads == 2  # exact: one per run
+    resolved = json.loads((tmp_path / "run" / "train_config.json").read_text())
+    assert resolved["train"]["steps"] == 3 and resolved["train"]["optimizer"] == "rprop"  # CLI, then TRAIN default
 
 
 # -- schedules, clipping, devices, imports -----------------------------------------------------------
@@ -226,12 +251,12 @@ def test_clip_by_global_norm():
 
 
 def test_schedule_reaches_training(dataset, tmp_path):
-    s = train("lbf", dataset, tmp_path / "sched", steps=2, config=CFG, progress=False, optimizer="adam",
-              learning_rate=1e-3, schedule="rampup_rsqrt", schedule_every=4, schedule_factor=10.0, clip_norm=1.0)
+    s = fit("lbf", dataset, tmp_path / "sched", steps=2, config=CFG, progress=False, optimizer="adam",
+            learning_rate=1e-3, schedule="rampup_rsqrt", schedule_every=4, schedule_factor=10.0, clip_norm=1.0)
     assert s["steps_done"] == 2 and np.isfinite(s["final_loss"])
     with pytest.raises(TrainError, match="needs optimizer 'adam'"):
-        train("lbf", dataset, tmp_path / "bad", steps=1, config=CFG, progress=False, optimizer="rprop",
-              schedule="step")
+        fit("lbf", dataset, tmp_path / "bad", steps=1, config=CFG, progress=False, optimizer="rprop",
+            schedule="step")
 
 
 _TRAIN_SCRIPT = """
@@ -239,9 +264,9 @@ import json, sys
 sys.path.insert(0, {tests!r})
 import jax
 from jaxdenoise.methods import lbf
-from jaxdenoise.train import train
+from conftest import fit
 from test_train import CFG
-s = train("lbf", {data!r}, {out!r}, steps=3, config=CFG, progress=False, optimizer="adam", learning_rate=1e-2)
+s = fit("lbf", {data!r}, {out!r}, steps=3, config=CFG, progress=False, optimizer="adam", learning_rate=1e-2)
 import jaxdenoise.checkpoint as ck
 meta = ck.load({out!r} + "/checkpoint")[1]
 print(json.dumps({{"devices": jax.local_device_count(), "history": meta["history"]}}))
@@ -285,8 +310,8 @@ class Block:
 sys.meta_path.insert(0, Block())
 import numpy as np, jax
 import jaxdenoise, jaxdenoise.train
-from jaxdenoise.methods import lbf
-from jaxdenoise.train import TrainConfig, _optimizer_key, _step_fn, make_optimizer
+from jaxdenoise.methods import get, lbf
+from jaxdenoise.train import TrainConfig, make_optimizer, step_fn
 cfg = lbf.Config(radius=1, prefilter=False, features=("normal",), train_spps=(4,), train_crop=6)
 params = lbf.init(jax.random.PRNGKey(0), cfg)
 tc = TrainConfig(optimizer="adam", learning_rate=1e-3)
@@ -295,7 +320,7 @@ r = np.random.default_rng(0)
 f = lambda *s: r.uniform(0.1, 1, size=s).astype(np.float32)
 batch = {"x": f(2, 6, 6, 8), "color": f(2, 6, 6, 3), "color_var": f(2, 6, 6, 3), "reference": f(2, 6, 6, 3),
          "spp": np.full(2, 4, np.float32), "guides": {"normal": f(2, 6, 6, 3)}, "guide_vars": {"normal": f(2, 6, 6, 1)}}
-p, s, value, ok = _step_fn("lbf", cfg, _optimizer_key(tc))(params, state, batch)
+p, s, value, ok = step_fn(get("lbf", cfg), tc)(params, state, batch)
 assert bool(ok) and np.isfinite(float(value))
 assert not any(m.split(".")[0] in ("OpenImageIO", "mitsuba", "jaxopt") for m in sys.modules)
 print("ok")
@@ -309,21 +334,21 @@ def test_parameter_groups_alternate_with_their_own_optimizers(tmp_path):
     import jax.numpy as jnp
 
     with registered("groups", "fake_groups"):
-        train("groups", tmp_path, tmp_path / "one", steps=1, progress=False, optimizer="adam",
-                    learning_rate=1e-2)
+        fit("groups", tmp_path, tmp_path / "one", steps=1, progress=False, optimizer="adam",
+                  learning_rate=1e-2)
         p1, _ = checkpoint.load(tmp_path / "one" / "weights")
         # step 0 moved a only, by Adam's first step (= lr in magnitude); b untouched
         np.testing.assert_allclose(p1["a"], 1 + 1e-2, rtol=1e-5)
         np.testing.assert_array_equal(p1["b"], np.ones(3))
-        train("groups", tmp_path, tmp_path / "two", steps=2, progress=False, optimizer="adam", learning_rate=1e-2)
+        fit("groups", tmp_path, tmp_path / "two", steps=2, progress=False, optimizer="adam", learning_rate=1e-2)
         p2, meta = checkpoint.load(tmp_path / "two" / "checkpoint")
         np.testing.assert_allclose(p2["params"]["b"], 1 - 0.5, rtol=1e-5)  # group b's own step size
         assert set(p2["opt_state"]) == {"a", "b"}  # one optimizer state per group
-        train("groups", tmp_path, tmp_path / "res", steps=3, progress=False, optimizer="adam", learning_rate=1e-2,
-              checkpoint_every=1)
+        fit("groups", tmp_path, tmp_path / "res", steps=3, progress=False, optimizer="adam", learning_rate=1e-2,
+            checkpoint_every=1)
         part = tmp_path / "part"
-        train("groups", tmp_path, part, steps=1, progress=False, optimizer="adam", learning_rate=1e-2)
-        train("groups", tmp_path, part, steps=3, progress=False, optimizer="adam", learning_rate=1e-2, resume=True)
+        fit("groups", tmp_path, part, steps=1, progress=False, optimizer="adam", learning_rate=1e-2)
+        fit("groups", tmp_path, part, steps=3, progress=False, optimizer="adam", learning_rate=1e-2, resume=True)
         a, _ = checkpoint.load(tmp_path / "res" / "weights")
         b, _ = checkpoint.load(part / "weights")
         for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
@@ -337,8 +362,8 @@ def test_small_conv_net_overfits_four_crops(tmp_path):
     the loss falls by more than 100x in 400 Adam steps (measured: 166x)."""
 
     with registered("convnet", "fake_convnet"):
-        train("convnet", tmp_path, tmp_path / "run", steps=400, progress=False, optimizer="adam",
-              learning_rate=3e-3, checkpoint_every=400)
+        fit("convnet", tmp_path, tmp_path / "run", steps=400, progress=False, optimizer="adam",
+            learning_rate=3e-3, checkpoint_every=400)
     meta = checkpoint.load(tmp_path / "run" / "checkpoint")[1]
     first, last = meta["history"][0], float(np.mean(meta["history"][-5:]))
     assert last < first / 100, (first, last)

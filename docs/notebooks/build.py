@@ -120,11 +120,12 @@ data_gen.generate_dataset("mixed", 3, train_dir, width=32, spp=(4, 8), instances
 data_gen.generate_dataset("mixed", 1, val_dir, width=32, spp=(4, 8), instances=1, ref_spp=256, seed=1000, progress=False)
 print(sorted(p.name for p in train_dir.iterdir()))"""),
         ("code", """\
-from jaxdenoise.methods import lbf
-from jaxdenoise.train import train
-config = lbf.Config(radius=5, train_spps=(4, 8), train_crop=24, train_scenes_per_step=2)
-summary = train("lbf", train_dir, WORK / "run", steps=60, config=config, optimizer="adam", learning_rate=1e-2,
-                val_data=val_dir, validate_every=20, progress=False)
+from jaxdenoise.methods import get, lbf
+from jaxdenoise.train import TrainConfig, train
+method = get("lbf", lbf.Config(radius=5, train_spps=(4, 8), train_crop=24, train_scenes_per_step=2))
+run = TrainConfig.for_method(method, steps=60, optimizer="adam", learning_rate=1e-2, val_data=val_dir,
+                             validate_every=20, progress=False)
+summary = train(method, train_dir, WORK / "run", run)
 print(summary["line"].replace(str(WORK), "WORK"))  # WORK: this notebook's temporary folder
 for v in summary["validation"]:
     print(f"step {v['step']:3d}: validation RelMSE {v['relmse']:.4f}")"""),
