@@ -46,7 +46,7 @@ Outputs under ``out_dir``:
 
 Validation (``val_data`` and ``validate_every > 0``): every ``validate_every`` steps and at the end,
 the current params denoise one render per shot and sampling rate of ``val_data`` (the first noise
-instance; ``val_spps`` limits the rates) through the method's full inference path (`api.inference_fn`,
+instance; ``val_spps`` limits the rates) through the method's full inference path (`inference.inference_fn`,
 so post-processing such as LBF's spike removal is included), and the score is the mean RelMSE
 (`metrics.relmse`) over those frames. Mini-batch losses are too noisy to pick weights by, and a run
 can get worse on some scenes while its training loss falls; ``best/`` is what to ship. The scores
@@ -99,9 +99,10 @@ from . import checkpoint
 from .fsutil import write_json
 from .methods import Method, MethodError
 from .nn.state import merge_updates
+from .errors import JaxdenoiseError
 
 __all__ = ["TrainConfig", "TrainError", "TrainingData", "State", "Group", "Stepper", "train", "load_data",
-           "initial_state", "param_groups", "step_fn", "make_stepper", "validation_round", "save_checkpoint",
+           "initial_state", "param_groups", "optimizer_state", "step_fn", "make_stepper", "validation_round", "save_checkpoint",
            "save_weights", "restore_like", "make_optimizer", "model_fields", "summary_line", "load_validation",
            "validate", "shard_batch", "batch_workers"]
 
@@ -123,7 +124,7 @@ def batch_workers() -> int:
     return max(1, min(8, (os.cpu_count() or 2) // 2))
 
 
-class TrainError(RuntimeError):
+class TrainError(JaxdenoiseError, RuntimeError):
     """Training cannot start or continue (bad data, config mismatch on resume, diverged)."""
 
 
@@ -330,6 +331,13 @@ def param_groups(method: Method, run: TrainConfig, params: Any) -> list[Group]:
     return out
 
 
+def optimizer_state(groups: list[Group], params: Any) -> Any:
+    """Fresh optimizer state for ``params``: one state, or ``{group: state}`` over its keys."""
+    if groups[0].name is None:
+        return make_optimizer(groups[0].train)[0](params)
+    return {g.name: make_optimizer(g.train)[0]({k: params[k] for k in g.keys}) for g in groups}
+
+
 def _saved_config(method: Method, meta: dict) -> Any:
     """A checkpoint's config with the fields it predates filled by their defaults (a config field
     added later, with a default that keeps the old behaviour, must not orphan older runs and
@@ -361,11 +369,7 @@ def initial_state(method: Method, data: TrainingData, run: TrainConfig, out_dir:
                              f"{method.name!r} with {cfg_dict}")
         params = restore_like(params, loaded, where=run.init_from)
     groups = param_groups(method, run, params)
-    if groups[0].name is None:
-        opt_state = make_optimizer(run)[0](params)
-    else:
-        opt_state = {g.name: make_optimizer(g.train)[0]({k: params[k] for k in g.keys}) for g in groups}
-    state = State(params=params, opt_state=opt_state, ema=params if run.ema else None)
+    state = State(params=params, opt_state=optimizer_state(groups, params), ema=params if run.ema else None)
     ckpt_dir = out_dir / CHECKPOINT_DIR
     if run.resume and (ckpt_dir / checkpoint.PARAMS_FILE).is_file():
         loaded, meta = checkpoint.load(ckpt_dir)
@@ -373,7 +377,7 @@ def initial_state(method: Method, data: TrainingData, run: TrainConfig, out_dir:
             raise TrainError(f"{ckpt_dir}: checkpoint is for method {meta.get('method')!r} with config "
                              f"{meta.get('config')}; this run is {method.name!r} with {cfg_dict}. "
                              "Use a new --out or the same settings.")
-        template = {"params": params, "opt_state": opt_state}
+        template = {"params": params, "opt_state": state.opt_state}
         if run.ema and "ema" in loaded:
             template["ema"] = params
         restored = restore_like(template, loaded if "ema" in template else
@@ -511,10 +515,11 @@ def save_checkpoint(out_dir: Path, method: Method, run: TrainConfig, state: Stat
 
 def save_weights(folder: Path, method: Method, run: TrainConfig, data: TrainingData, state: State,
                  **extra: Any) -> None:
-    """What ``state`` ships, loadable like shipped weights, with where it came from."""
+    """What ``state`` ships, loadable like shipped weights, with where it came from and how many
+    non-finite steps the run skipped (``bad_steps``)."""
     checkpoint.save(folder, state.shipped, method.config,
                     extra={"method": method.name, "steps": state.step, "data": str(data.source),
-                           "seed": int(run.seed), **extra})
+                           "seed": int(run.seed), "bad_steps": state.bad_steps, **extra})
 
 
 # -- devices and validation frames ------------------------------------------------------------------
@@ -549,7 +554,7 @@ def load_validation(method: Any, data_dir: str | Path, spps: Any = None) -> list
     gives one entry per sampling rate holding the whole video, ``{"file", "spp", "frames",
     "references"}`` (its first render name at that rate in every frame), so that `validate` steps
     recurrent and windowed methods through it."""
-    from .api import prepare
+    from .inference import prepare
 
     wanted = None if spps is None else {int(s) for s in spps}
     if Path(data_dir).suffix == ".npz":
@@ -590,7 +595,7 @@ def load_validation(method: Any, data_dir: str | Path, spps: Any = None) -> list
 def _validation_from_export(method: Any, path: Path, wanted: set | None) -> list[dict]:
     """Validation frames from an export of whole frames (`pipeline.Cache.export(whole=True)`): the
     machine that trains may have no OpenImageIO (a GPU machine)."""
-    from .api import prepare
+    from .inference import prepare
     from .buffers import Buffers
     from .pipeline import load_export
 
@@ -634,7 +639,7 @@ def validate(method: Any, params: Any, frames: list[dict]) -> dict:
     sequence entry runs through the sequence driver (state carried, neighbours read) and counts each
     of its frames. A non-finite output scores RelMSE ``inf`` (never the best)."""
     from . import metrics
-    from .api import inference_fn
+    from .inference import inference_fn
     from .sequence import run
 
     fn = inference_fn(method)

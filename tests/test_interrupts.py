@@ -31,14 +31,14 @@ def _kill_after(cmd: list[str], seconds: float, cwd=ROOT) -> int | None:
         return None
 
 
-def _kill_at_file(cmd: list[str], folder: Path, n: int, cwd=ROOT) -> int | None:
-    """Start ``cmd``, SIGKILL it as soon as ``folder`` holds ``n`` finished EXR files (None if it
-    finished first: its return code). A moment set by the run's progress, not by a wall time measured
-    on another run (a second run can be much faster than the first: warm caches)."""
+def _kill_when(cmd: list[str], ready, cwd=ROOT) -> int | None:
+    """Start ``cmd``, SIGKILL it as soon as ``ready()`` holds (None if it finished first: its return
+    code). A moment set by the run's progress, not by a wall time measured on another run (a second
+    run can be much faster than the first: warm caches)."""
     p = subprocess.Popen(cmd, cwd=cwd, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         while p.poll() is None:
-            if folder.is_dir() and sum(not f.name.startswith(".") for f in folder.rglob("*.exr")) >= n:
+            if ready():
                 p.send_signal(signal.SIGKILL)
                 p.wait()
                 return None
@@ -48,6 +48,20 @@ def _kill_at_file(cmd: list[str], folder: Path, n: int, cwd=ROOT) -> int | None:
         if p.poll() is None:
             p.kill()
             p.wait()
+
+
+def _kill_at_file(cmd: list[str], folder: Path, n: int, cwd=ROOT) -> int | None:
+    """`_kill_when` ``folder`` holds ``n`` finished EXR files."""
+    return _kill_when(cmd, lambda: folder.is_dir() and sum(not f.name.startswith(".")
+                                                              for f in folder.rglob("*.exr")) >= n, cwd)
+
+
+def _checkpoint_step(run: Path) -> int:
+    """The step of ``run``'s checkpoint (-1 before the first; the file is replaced atomically)."""
+    try:
+        return int(json.loads((run / "checkpoint" / "config.json").read_text())["step"])
+    except (FileNotFoundError, json.JSONDecodeError, KeyError):
+        return -1
 
 
 def _run(cmd: list[str]) -> float:
@@ -129,10 +143,14 @@ def train_data(tmp_path_factory):
 
 
 def _train_case(tmp_path, data, fraction):
+    """Killed once the run's checkpoint reached ``fraction`` of its 12 steps (between 1 and 11:
+    `checkpoint_every=1`), resumed, compared with an uninterrupted run."""
     full, part = tmp_path / "full", tmp_path / f"part_{fraction:.2f}"
     cmd = [sys.executable, "-c", TRAIN, str(data)]
-    duration = _run(cmd + [str(full)])
-    assert _kill_after(cmd + [str(part)], fraction * duration) is None, "finished before the kill"
+    _run(cmd + [str(full)])
+    at = min(11, max(1, round(fraction * 12)))
+    assert _kill_when(cmd + [str(part)], lambda: _checkpoint_step(part) >= at) is None, "finished before the kill"
+    assert at <= _checkpoint_step(part) < 12, "killed, but not in the middle of the run"
     if part.exists():
         _all_complete(part)
         from jaxdenoise import checkpoint
@@ -174,8 +192,8 @@ def test_bench_killed_leaves_no_half_written_report(tmp_path):
     cmd = [sys.executable, "-m", "jaxdenoise.cli", "bench", str(data), "--methods", "input,gaussian",
            "--out", str(tmp_path / "r"), "--quiet"]
     duration = _run(cmd)
-    for fraction in (0.5, 0.8, 0.95):
-        _kill_after(cmd, fraction * duration)
+    for fraction in (0.3, 0.5, 0.7):  # every run compiles afresh, so each takes about as long as the first
+        assert _kill_after(cmd, fraction * duration) is None, f"bench finished before the kill at {fraction}"
         if (tmp_path / "r").exists():
             _all_complete(tmp_path / "r")
     _run(cmd)

@@ -55,7 +55,8 @@ def test_missing_camera_is_a_clear_error():
         denoise(b, method="rae", params=rae.init(jax.random.PRNGKey(0), rae.Config()))
 
 
-@pytest.mark.parametrize("h,w", [(1, 1), (7, 5), (33, 40)])
+# 1x1 under `slow` (13 s of compilation): the stability suite runs rae at 1x1 in the default run
+@pytest.mark.parametrize("h,w", [pytest.param(1, 1, marks=pytest.mark.slow), (7, 5), (33, 40)])
 def test_any_size(h, w):
     p = rae.init(jax.random.PRNGKey(0), TINY)
     b = _frame(h, w)
@@ -200,3 +201,12 @@ def test_view_space_vectors_turn_with_the_image():
     np.testing.assert_allclose(out["normal_view"][..., :2], np.broadcast_to([0.0, 1.0], (4, 3, 2)))
     np.testing.assert_array_equal(out["normal"], np.rot90(v, 1, axes=(-3, -2)))
     np.testing.assert_allclose(pipeline.flip_lr({"normal_view": v})["normal_view"][..., 0], -1.0)
+
+
+def test_frame_weights_for_any_sequence_length():
+    """Sec. 4.4's seven weights: the last t of them for a shorter sequence, 1 for every frame past
+    the seventh of a longer one (documented in docs/methods/rae.md; exact)."""
+    cfg = rae.Config()
+    assert rae.frame_weights(cfg, 7) == (0.011, 0.044, 0.135, 0.325, 0.607, 0.882, 1.0)
+    assert rae.frame_weights(cfg, 2) == (0.882, 1.0)
+    assert rae.frame_weights(cfg, 9) == (0.011, 0.044, 0.135, 0.325, 0.607, 0.882, 1.0, 1.0, 1.0)

@@ -39,6 +39,7 @@ import numpy as np
 
 from .. import color, nn, view
 from ..buffers import Buffers
+from ..errors import JaxdenoiseError
 
 __all__ = ["Config", "needs", "required", "init", "apply", "init_state", "step", "loss", "run_sequence", "inputs",
            "make_dataset", "batch",
@@ -87,11 +88,11 @@ def WEIGHTS(config: Config) -> str:
 def _check(config: Config) -> None:
     bad = [a for a in config.aux if a not in AUX]
     if bad:
-        raise ValueError(f"rae: config.aux has unknown {bad}; expected some of {list(AUX)}")
+        raise JaxdenoiseError(f"rae: config.aux has unknown {bad}; expected some of {list(AUX)}")
     if len(config.widths) != 5:
-        raise ValueError(f"rae: config.widths must give the five encoder stages, got {config.widths}")
+        raise JaxdenoiseError(f"rae: config.widths must give the five encoder stages, got {config.widths}")
     if config.decoder_widths is not None and len(config.decoder_widths) != 5:
-        raise ValueError(f"rae: config.decoder_widths must give five decoder stages, got {config.decoder_widths}")
+        raise JaxdenoiseError(f"rae: config.decoder_widths must give five decoder stages, got {config.decoder_widths}")
 
 
 def needs(config: Config) -> frozenset[str]:
@@ -314,6 +315,15 @@ def run_sequence(params: dict, x: jax.Array, albedo: jax.Array, config: Config) 
     return jnp.stack(outs, axis=1)
 
 
+def frame_weights(config: Config, t: int) -> tuple[float, ...]:
+    """The loss weights of a ``t``-frame sequence (Sec. 4.4 gives seven, rising to 1 at the last
+    frame so that frames with more temporal context count more): the last ``t`` of them for up to
+    seven frames; a longer sequence keeps the seven for its first frames and weighs every later one
+    by the last weight (1: a frame with at least six frames of context). docs/methods/rae.md."""
+    w = tuple(config.frame_weights)
+    return w[len(w) - t:] if t <= len(w) else w + (w[-1],) * (t - len(w))
+
+
 def loss(params: dict, batch: dict, config: Config):
     """Sec. 4.4 on a batch of sequences ``{"x": (B, T, H, W, C), "albedo", "reference": (B, T, H, W, 3)}``:
     the frames run through the network in order from a zero state (an unrolled loop), and the
@@ -321,7 +331,7 @@ def loss(params: dict, batch: dict, config: Config):
     pred = run_sequence(params, batch["x"], batch["albedo"], config)
     t = pred.shape[1]
     terms = loss_terms(pred, batch["reference"], config)
-    fw = jnp.asarray(config.frame_weights[-t:], jnp.float32) if t <= len(config.frame_weights) else jnp.ones((t,))
+    fw = jnp.asarray(frame_weights(config, t), jnp.float32)
     ws, wg, wt = config.loss_weights
     per_frame = ws * terms["spatial"] + wg * terms["hfen"] + wt * terms["temporal"]
     value = jnp.sum(fw * per_frame) / jnp.sum(fw)
