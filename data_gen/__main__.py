@@ -6,6 +6,8 @@ import shlex
 import sys
 import time
 
+from jaxdenoise.errors import JaxdenoiseError
+
 from .gradient import DEFAULT_SHIFT, PRIMALS, SHIFTS
 
 
@@ -26,6 +28,8 @@ def _names(text: str | None) -> list[str] | None:
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     p = argparse.ArgumentParser(prog="python -m data_gen", description=__doc__)
+    p.add_argument("--debug", action="store_true", help="show the traceback of every error, bad input included "
+                                                        "(default: one line for bad input, a traceback for bugs)")
     sub = p.add_subparsers(dest="verb", required=True)
 
     def common(q):
@@ -65,7 +69,18 @@ def main(argv: list[str] | None = None) -> int:
                    help="render each scene as a camera fly-through of N frames (frame_XXXX/ folders)")
     common(d)
     a = p.parse_args(argv)
+    # Input the project refuses (its own error type, a missing file) is one line and exit code 2; a
+    # bug keeps its traceback, as does everything with --debug.
+    try:
+        return _run(a, argv)
+    except (JaxdenoiseError, FileNotFoundError) as exc:
+        if a.debug:
+            raise
+        print(f"data_gen: error: {exc}", file=sys.stderr)
+        return 2
 
+
+def _run(a: argparse.Namespace, argv: list[str]) -> int:
     from .mitsuba_setup import setup_mitsuba
 
     variant = setup_mitsuba(a.variant)
@@ -120,12 +135,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    try:
-        sys.exit(main())
-    except Exception as exc:  # noqa: BLE001 - one clear line instead of a traceback for user errors
-        from .scenes import SceneError
-
-        if isinstance(exc, (SceneError, ValueError, ImportError)):
-            print(f"data_gen: error: {exc}", file=sys.stderr)
-            sys.exit(2)
-        raise
+    sys.exit(main())

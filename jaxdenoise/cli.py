@@ -13,6 +13,8 @@ import time
 from importlib.metadata import entry_points
 from pathlib import Path
 
+from .errors import JaxdenoiseError
+
 
 def _cmd_methods(args: argparse.Namespace) -> int:
     from .methods import available, get
@@ -30,7 +32,8 @@ def _cmd_denoise(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from .api import inference_fn, prepare, resolve
+    from .api import resolve
+    from .inference import inference_fn, notes, prepare
     from .fsutil import write_json
     from .io import read_buffers, write_image
 
@@ -43,7 +46,9 @@ def _cmd_denoise(args: argparse.Namespace) -> int:
     repair = "zero" if args.repair else None
     inp = Path(args.input)
     buffers, attrs = read_buffers(inp, repair=repair)
-    image = inference_fn(m)(params, prepare(m, buffers, where=str(inp)))
+    prepared = prepare(m, buffers, where=str(inp))
+    _warn(notes(m, buffers))
+    image = inference_fn(m)(params, prepared)
     out = write_image(args.output, np.asarray(image), {"jaxdenoise:method": m.name,
                                                        "jaxdenoise:input": str(inp)})
     cfg_path = out.with_name(out.stem + ".config.json")
@@ -67,12 +72,19 @@ def frame_output_names(paths: list[Path]) -> list[str]:
     return [str(p.resolve().relative_to(common)).replace(os.sep, "_") for p in paths]
 
 
+def _warn(remarks: list[str]) -> None:
+    """What the run does without (`inference.notes`), one ``warning:`` line each on stderr."""
+    for r in remarks:
+        print(f"warning: {r}", file=sys.stderr)
+
+
 def _denoise_frames(args: argparse.Namespace, t0: float) -> int:
     """``denoise --frames GLOB -o OUT_DIR``: every frame through the sequence driver, each written."""
     import dataclasses
 
     from .api import resolve
     from .fsutil import write_json
+    from .inference import notes
     from .io import read_sequence, write_image
     from .sequence import run
 
@@ -85,6 +97,8 @@ def _denoise_frames(args: argparse.Namespace, t0: float) -> int:
     if out_dir.suffix.lower() == ".exr" or out_dir.is_file():
         raise SystemExit(f"error: with --frames, -o/--output is a folder for every denoised frame; got {out_dir}")
     out_dir.mkdir(parents=True, exist_ok=True)
+    if frames:
+        _warn(notes(m, frames[0]))
     names = frame_output_names(paths)
     written = []
     for path, name, image in zip(paths, names, run(m, params, frames, names=[str(p) for p in paths])):
@@ -120,19 +134,15 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 def _cmd_train(args: argparse.Namespace) -> int:
     from .methods import get
-    from .train import TrainConfig, TrainError, train
+    from .train import TrainConfig, train
 
     # Each option maps onto one TrainConfig field; options left unset keep the method's TRAIN default.
     options = {"steps": args.steps, "seed": args.seed, "resume": args.resume, "init_from": args.init,
                "val_data": args.val_data, "val_spps": args.val_spps, "validate_every": args.validate_every,
                "ema": args.ema, "progress": not args.quiet}
-    try:
-        method = get(args.method)
-        summary = train(method, args.data, args.out,
-                        TrainConfig.for_method(method, **{k: v for k, v in options.items() if v is not None}))
-    except TrainError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    method = get(args.method)
+    summary = train(method, args.data, args.out,
+                    TrainConfig.for_method(method, **{k: v for k, v in options.items() if v is not None}))
     print(summary.get("line", f"train: {args.method} done; outputs in {args.out}"))
     return 0
 
@@ -149,6 +159,8 @@ def _int_list(text: str) -> list[int]:
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="jaxdenoise", description=__doc__.split("\n")[0])
+    p.add_argument("--debug", action="store_true", help="show the traceback of every error, bad input included "
+                                                        "(default: one line for bad input, a traceback for bugs)")
     sub = p.add_subparsers(dest="verb", required=True)
 
     s = sub.add_parser("methods", help="list registered methods, what they need, and whether they run here")
@@ -199,6 +211,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run a verb. Input the library refuses (`jaxdenoise.errors.JaxdenoiseError`, a missing file)
+    ends in one ``error:`` line and exit code 2; anything else is a bug and keeps its traceback, as
+    does everything with ``--debug``."""
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
@@ -206,7 +221,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted; finished outputs are intact (all writes are atomic)", file=sys.stderr)
         return 130
-    except (ValueError, FileNotFoundError, ImportError) as e:
+    except (JaxdenoiseError, FileNotFoundError) as e:
+        if args.debug:
+            raise
         print(f"error: {e}", file=sys.stderr)
         return 2
 

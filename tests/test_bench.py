@@ -88,3 +88,65 @@ def test_cli_bench_and_denoise(data, tmp_path, capsys):
     assert capsys.readouterr().out.startswith("denoise: spp0004_00.exr ->")
     assert main(["denoise", str(src), "-o", str(tmp_path / "o2.exr"), "--method", "nope"]) == 2
     assert "unknown method 'nope'" in capsys.readouterr().err
+
+
+def test_cli_errors_one_line_for_bad_input_a_traceback_for_bugs(data, tmp_path, capsys, monkeypatch):
+    """Input the library refuses (`JaxdenoiseError`, a missing file) is one ``error:`` line and exit
+    code 2; any other exception is a bug and propagates with its traceback; ``--debug`` lets the
+    bad-input error propagate too."""
+    from jaxdenoise.errors import JaxdenoiseError
+    from jaxdenoise.methods import MethodError
+
+    src = data / "scene_0000" / "spp0004_00.exr"
+    bad = ["denoise", str(src), "-o", str(tmp_path / "o.exr"), "--method", "nope"]
+    assert main(bad) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: unknown method 'nope'") and len(err.strip().splitlines()) == 1
+    assert main(["denoise", str(tmp_path / "missing.exr"), "-o", str(tmp_path / "o.exr")]) == 2
+    assert "missing.exr" in capsys.readouterr().err
+    with pytest.raises(MethodError, match="unknown method"):
+        main(["--debug"] + bad)
+    assert issubclass(MethodError, JaxdenoiseError)
+
+    def bug(*a, **k):
+        raise ValueError("an internal bug")  # not the project's error type
+
+    monkeypatch.setattr("jaxdenoise.inference.prepare", bug)
+    with pytest.raises(ValueError, match="an internal bug"):
+        main(["denoise", str(src), "-o", str(tmp_path / "o3.exr"), "--method", "gaussian"])
+
+
+def test_records_say_which_buffers_a_method_read_and_what_it_ran_without(tmp_path, capsys):
+    """A method that can use albedo, on a 4-spp row mixing a frame with albedo and one without: each
+    record lists the buffers read and, for the second, a note; the row counts the frames the note
+    concerns; the table, the viewer, the API (a `JaxdenoiseWarning`) and the CLI (a warning line)
+    say so too."""
+    import warnings
+
+    import jaxdenoise as jd
+    from jaxdenoise.errors import JaxdenoiseWarning
+
+    root = tmp_path / "data"
+    for s, fields in enumerate((("color", "albedo"), ("color",))):
+        (root / f"scene_{s:04d}").mkdir(parents=True)
+        make_shot(root / f"scene_{s:04d}", synthetic_frame(16, 16, seed=1).color,
+                  {4: synthetic_frame(16, 16, seed=2 + s, fields=fields)})
+    note = "uses-albedo ran without optional buffer(s) ['albedo'] it can use"
+    with registered("uses-albedo", "fake_optional_albedo"):
+        report = bench.run(root, ["uses-albedo"], tmp_path / "r", runs=5, progress=False)
+        recs = sorted(report["records"], key=lambda r: r["shot"])
+        assert [r["buffers"] for r in recs] == [["albedo", "color"], ["color"]]  # exact
+        assert [r["notes"] for r in recs] == [[], [note]]
+        row = bench.summarize(report["records"])[0]
+        assert row["notes"] == [f"{note} (1 of 2 frame(s))"] and row["buffers"] == ["albedo", "color"]
+        assert f"{note} (1 of 2 frame(s))" in (tmp_path / "r" / "results.md").read_text()
+        assert note in (tmp_path / "r" / "viewer.html").read_text()
+        bare = synthetic_frame(16, 16, seed=3, fields=("color",))
+        with pytest.warns(JaxdenoiseWarning, match=r"ran without optional buffer\(s\) \['albedo'\]"):
+            jd.denoise(bare, method="uses-albedo")
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", JaxdenoiseWarning)
+            jd.denoise(synthetic_frame(16, 16, seed=3, fields=("color", "albedo")), method="uses-albedo")
+        src = root / "scene_0001" / "spp0004_00.exr"
+        assert main(["denoise", str(src), "-o", str(tmp_path / "o.exr"), "--method", "uses-albedo"]) == 0
+        assert f"warning: {note}" in capsys.readouterr().err
