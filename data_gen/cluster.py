@@ -29,6 +29,8 @@ from typing import Iterator
 
 from jaxdenoise.cluster import EXTRA_HINT, connect, distributed_module
 
+from .jobs import render_job
+
 __all__ = ["connect", "run_jobs", "EXTRA_HINT"]
 
 
@@ -36,8 +38,6 @@ def _task(job: dict) -> tuple[str, dict]:
     """Render one shot on a worker (module docstring); counts its attempts in the shot folder."""
     import drjit as dr
     from distributed import get_worker
-
-    from .dataset import _render_one
 
     threads = max(1, int(get_worker().state.nthreads))
     dr.set_thread_count(threads)
@@ -50,11 +50,11 @@ def _task(job: dict) -> tuple[str, dict]:
     if die and not Path(die).exists():  # test hook: this worker process dies in the middle of the shot
         Path(die).touch()
         try:
-            _render_one({**job, "_stop_after": 1})
+            render_job({**job, "_stop_after": 1})
         except KeyboardInterrupt:
             pass
         os._exit(1)
-    name, rec = _render_one(job)
+    name, rec = render_job(job)
     rec["attempts"] = attempts
     rec["drjit_threads"] = int(dr.thread_count())  # what the render ran with (= the worker's threads)
     counter.unlink(missing_ok=True)

@@ -16,35 +16,11 @@ import time
 from pathlib import Path
 from typing import Iterable, Sequence
 
-from .shot import render_shot
+from jaxdenoise.errors import JaxdenoiseError
+
+from .jobs import render_job
 
 MANIFEST = "manifest.json"
-
-
-def _render_one(job: dict) -> tuple[str, dict]:
-    from .scenes import build_scene
-
-    scene = build_scene(job["family"], job["scene_seed"], width=job["width"], height=job["height"])
-    scene["__name__"] = f"{job['family']}:{job['scene_seed']}"
-    if job.get("frames"):  # a camera fly-through: DIR/scene_XXXX/frame_XXXX/ (Chaitanya 2017 Sec. 4.3)
-        from .sequences import render_sequence
-
-        seq = render_sequence(scene, job["dir"], n_frames=job["frames"], instances=job["instances"], spp=job["spp"],
-                              ref_spp=job["ref_spp"], seed=job["scene_seed"], buffers=job["buffers"],
-                              methods=job["methods"], max_depth=job["max_depth"], progress=job["progress"],
-                              samples_per_pass=job["samples_per_pass"], shift=job.get("shift"),
-                              primal=job.get("primal", "base"))
-        rec = {"frames": len(seq["frames"]), "scene": scene["__name__"],
-               "render_seconds": float(sum(f.get("render_seconds", 0.0) for f in seq["frames"])),
-               "family": scene.get("__family__", job["family"]), "requested_family": job["family"]}
-        return job["name"], rec
-    rec = render_shot(scene, job["dir"], spp=job["spp"], ref_spp=job["ref_spp"], instances=job["instances"],
-                      methods=job["methods"], buffers=job["buffers"], max_depth=job["max_depth"],
-                      seed=job["scene_seed"], progress=job["progress"], samples_per_pass=job["samples_per_pass"],
-                      shift=job.get("shift"), primal=job.get("primal", "base"), _stop_after=job.get("_stop_after"))
-    rec["family"] = scene.get("__family__", job["family"])
-    rec["requested_family"] = job["family"]
-    return job["name"], rec
 
 
 def generate_dataset(family: str, count: int, out: str | os.PathLike, *, width: int = 128,
@@ -70,13 +46,13 @@ def generate_dataset(family: str, count: int, out: str | os.PathLike, *, width: 
     from .scenes import ALL_FAMILIES
 
     if family not in ALL_FAMILIES:
-        raise ValueError(f"family must be one of {list(ALL_FAMILIES)}, got {family!r}")
+        raise JaxdenoiseError(f"family must be one of {list(ALL_FAMILIES)}, got {family!r}")
     if not isinstance(count, int) or count < 1:
-        raise ValueError(f"count must be an int >= 1, got {count!r}")
+        raise JaxdenoiseError(f"count must be an int >= 1, got {count!r}")
     if not isinstance(workers, int) or workers < 1:
-        raise ValueError(f"workers must be an int >= 1, got {workers!r}")
+        raise JaxdenoiseError(f"workers must be an int >= 1, got {workers!r}")
     if scheduler is not None and workers != 1:
-        raise ValueError("give either workers (local processes) or scheduler (a Dask cluster), not both")
+        raise JaxdenoiseError("give either workers (local processes) or scheduler (a Dask cluster), not both")
     height = width if height is None else height
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -131,11 +107,11 @@ def generate_dataset(family: str, count: int, out: str | os.PathLike, *, width: 
                 done(name, rec)
         elif workers == 1:
             for job in jobs:
-                done(*_render_one(job))
+                done(*render_job(job))
         else:
             ctx = mp.get_context("spawn")
             with cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as ex:
-                futs = [ex.submit(_render_one, j) for j in jobs]
+                futs = [ex.submit(render_job, j) for j in jobs]
                 for f in cf.as_completed(futs):
                     done(*f.result())
     finally:

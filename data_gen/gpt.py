@@ -57,7 +57,8 @@ from __future__ import annotations
 
 import dataclasses
 
-from .integrator import PathSettings, _mis_weight, _RoughnessLookup
+from .integrator import PathSettings, mis_weight, RoughnessLookup
+from jaxdenoise.errors import JaxdenoiseError
 
 __all__ = ["ShiftSettings", "NEIGHBOURS", "trace_gpt"]
 
@@ -87,7 +88,7 @@ class ShiftSettings:
 
     def __post_init__(self) -> None:
         if not isinstance(self.roughness_threshold, (int, float)) or not 0.0 <= self.roughness_threshold < 1.0:
-            raise ValueError(f"roughness_threshold: expected a number in [0, 1), got {self.roughness_threshold!r}")
+            raise JaxdenoiseError(f"roughness_threshold: expected a number in [0, 1), got {self.roughness_threshold!r}")
 
 
 def _norm_dir(v):
@@ -128,7 +129,7 @@ def _direction_sample(ds, *, p, d, dist):
 
 
 def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, settings: PathSettings,
-              shift: ShiftSettings = ShiftSettings(), roughness: _RoughnessLookup | None = None) -> dict:
+              shift: ShiftSettings = ShiftSettings(), roughness: RoughnessLookup | None = None) -> dict:
     """Trace one base path per lane of ``ray`` and shift it to the four ``offset_rays`` (camera rays
     through the `NEIGHBOURS`, same camera samples; ``*_weight`` the camera weights).
 
@@ -142,7 +143,7 @@ def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, setti
     import mitsuba as mi
 
     if roughness is None:
-        roughness = _RoughnessLookup(scene)
+        roughness = RoughnessLookup(scene)
     thr = float(shift.roughness_threshold)
     ctx = mi.BSDFContext()
     K = len(NEIGHBOURS)
@@ -195,7 +196,7 @@ def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, setti
         reaches = active_em & ~occluded & (dr.max(em_weight) > 0.0)
         wo = si.to_local(ds_em.d)
         bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, wo, reaches)
-        mis_em = dr.select(ds_em.delta, 1.0, _mis_weight(ds_em.pdf, bsdf_pdf))
+        mis_em = dr.select(ds_em.delta, 1.0, mis_weight(ds_em.pdf, bsdf_pdf))
         L = L + dr.select(reaches, beta * bsdf_val * em_weight * mis_em, 0.0)
 
         inf = has(ds_em.emitter.flags(), mi.EmitterFlags.Infinite)
@@ -272,7 +273,7 @@ def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, setti
         delta_s = has(bs.sampled_type, mi.BSDFFlags.Delta)
         ds = mi.DirectionSample3f(scene, si=si_n, ref=si)
         em_pdf = scene.pdf_emitter_direction(si, ds, cont & ~delta_s)
-        mis_bsdf = dr.select(delta_s, 1.0, _mis_weight(bs.pdf, em_pdf))
+        mis_bsdf = dr.select(delta_s, 1.0, mis_weight(bs.pdf, em_pdf))
         le_x = ds.emitter.eval(si_n, cont)
         L = L + dr.select(cont, beta_n * mis_bsdf * le_x, 0.0)
 

@@ -42,6 +42,7 @@ from .mitsuba_setup import is_vectorized, setup_mitsuba
 from .gpt import NEIGHBOURS, ShiftSettings, trace_gpt
 from .render import DEFAULT_SAMPLES_PER_PASS, camera_ray, camera_samples
 from .scenes import load_scene
+from jaxdenoise.errors import JaxdenoiseError
 
 __all__ = ["render_gradients", "trace_shifted", "trace_reconnect", "OFFSETS", "SHIFTS"]
 
@@ -179,19 +180,19 @@ def render_gradients(
         fractions of offset paths that reconnected, went through a half-vector copy, and failed.
     """
     if shift not in SHIFTS:
-        raise ValueError(f"shift: expected one of {SHIFTS}, got {shift!r}")
+        raise JaxdenoiseError(f"shift: expected one of {SHIFTS}, got {shift!r}")
     if primal not in PRIMALS:
-        raise ValueError(f"primal: expected one of {PRIMALS}, got {primal!r}")
+        raise JaxdenoiseError(f"primal: expected one of {PRIMALS}, got {primal!r}")
     if primal == "gpt" and shift != "reconnect":
-        raise ValueError("primal='gpt' needs shift='reconnect' (replay has no offset estimates of a pixel)")
+        raise JaxdenoiseError("primal='gpt' needs shift='reconnect' (replay has no offset estimates of a pixel)")
     shift_settings = ShiftSettings(roughness_threshold=roughness_threshold)
     if isinstance(spp, bool) or not isinstance(spp, (int, np.integer)) or spp < 1:
-        raise ValueError(f"spp: expected a positive integer, got {spp!r}")
+        raise JaxdenoiseError(f"spp: expected a positive integer, got {spp!r}")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise ValueError(f"seed: expected a non-negative integer, got {seed!r}")
+        raise JaxdenoiseError(f"seed: expected a non-negative integer, got {seed!r}")
     if isinstance(samples_per_pass, bool) or not isinstance(samples_per_pass, (int, np.integer)) \
             or samples_per_pass < 1:
-        raise ValueError(f"samples_per_pass: expected a positive integer, got {samples_per_pass!r}")
+        raise JaxdenoiseError(f"samples_per_pass: expected a positive integer, got {samples_per_pass!r}")
     settings = PathSettings(max_depth=int(max_depth), rr_depth=int(rr_depth))
 
     setup_mitsuba()
@@ -205,16 +206,16 @@ def render_gradients(
 
     scene = load_scene(scene)
     if not scene.sensors():
-        raise ValueError("scene: has no sensor")
+        raise JaxdenoiseError("scene: has no sensor")
     film_w, film_h = (int(v) for v in scene.sensors()[0].film().crop_size())
     if resolution is None:
         width, height = film_w, film_h
     else:
         if len(resolution) != 2 or any(int(v) < 1 for v in resolution):
-            raise ValueError(f"resolution: expected (width, height) of positive integers, got {resolution!r}")
+            raise JaxdenoiseError(f"resolution: expected (width, height) of positive integers, got {resolution!r}")
         width, height = int(resolution[0]), int(resolution[1])
         if abs(width * film_h - height * film_w) > 1e-3 * film_w * height:
-            raise ValueError(
+            raise JaxdenoiseError(
                 f"resolution: {width}x{height} does not keep the film's aspect ratio {film_w}x{film_h} "
                 "(pixels would not be square)"
             )

@@ -39,6 +39,7 @@ from typing import Any
 import numpy as np
 
 from .mitsuba_setup import is_vectorized
+from jaxdenoise.errors import JaxdenoiseError
 
 # feature -> channel count, in `jaxdenoise.buffers.CHANNELS` order.
 FEATURE_DIMS: dict[str, int] = {
@@ -56,9 +57,9 @@ class PathSettings:
 
     def __post_init__(self) -> None:
         if not isinstance(self.max_depth, int) or self.max_depth < 1:
-            raise ValueError(f"max_depth must be an int >= 1 (1 = emitters only), got {self.max_depth!r}")
+            raise JaxdenoiseError(f"max_depth must be an int >= 1 (1 = emitters only), got {self.max_depth!r}")
         if not isinstance(self.rr_depth, int) or self.rr_depth < 1:
-            raise ValueError(f"rr_depth must be an int >= 1, got {self.rr_depth!r}")
+            raise JaxdenoiseError(f"rr_depth must be an int >= 1, got {self.rr_depth!r}")
 
 
 def derive_seed(*parts: Any) -> int:
@@ -105,7 +106,7 @@ def scene_bsdfs(scene) -> list:
     return out
 
 
-class _RoughnessLookup:
+class RoughnessLookup:
     """Maps a (vectorized) BSDF pointer to its roughness: a gather in a table indexed by the
     registry id of the BSDF (LLVM variants), or a dict lookup (scalar variant)."""
 
@@ -132,14 +133,11 @@ class _RoughnessLookup:
             return dr.gather(mi.Float, self.table, idx, active)
         return self.values.get(id(bsdf), 0.0) if (active and bsdf is not None) else 0.0
 
-    def constant(self) -> bool:
-        return len(set(self.values.values())) <= 1
-
 
 # --------------------------------------------------------------------------------------------------
 # The path tracer
 # --------------------------------------------------------------------------------------------------
-def _mis_weight(pdf_a, pdf_b):
+def mis_weight(pdf_a, pdf_b):
     import drjit as dr
 
     a2 = dr.square(pdf_a)
@@ -150,7 +148,7 @@ def _mis_weight(pdf_a, pdf_b):
 
 
 def trace(scene, sampler, ray, active, *, settings: PathSettings, record: frozenset[str],
-          roughness: _RoughnessLookup | None = None) -> dict:
+          roughness: RoughnessLookup | None = None) -> dict:
     """Trace one path per lane of ``ray``; returns ``{"color": Spectrum, <feature>: value, ...}``
     for the features in ``record`` (values per sample, 0 where undefined; see module docstring).
 
@@ -164,7 +162,7 @@ def trace(scene, sampler, ray, active, *, settings: PathSettings, record: frozen
     bsdf_ctx = mi.BSDFContext()
     want = {f: (f in record) for f in FEATURES}
     if want["roughness"] and roughness is None:
-        roughness = _RoughnessLookup(scene)
+        roughness = RoughnessLookup(scene)
 
     feats = {}
     for f in FEATURES:
@@ -192,14 +190,14 @@ def trace(scene, sampler, ray, active, *, settings: PathSettings, record: frozen
         ds = mi.DirectionSample3f(scene, si=si, ref=s["prev_si"])
         if vec:
             em_pdf = scene.pdf_emitter_direction(s["prev_si"], ds, active & _not(s["prev_delta"]))
-            mis_bsdf = dr.select(s["prev_delta"], 1.0, _mis_weight(s["prev_pdf"], em_pdf))
+            mis_bsdf = dr.select(s["prev_delta"], 1.0, mis_weight(s["prev_pdf"], em_pdf))
             L = s["L"] + dr.select(active, s["beta"] * mis_bsdf * ds.emitter.eval(si, active), 0.0)
         else:
             # Scalar variant: masks do not protect null pointers (no emitter hit, no surface), so the
             # same estimator is written with Python branches.
             L = s["L"]
             if active and ds.emitter is not None:
-                mis_bsdf = 1.0 if s["prev_delta"] else _mis_weight(
+                mis_bsdf = 1.0 if s["prev_delta"] else mis_weight(
                     s["prev_pdf"], scene.pdf_emitter_direction(s["prev_si"], ds, True))
                 L = L + s["beta"] * mis_bsdf * ds.emitter.eval(si, True)
             if not (active and valid):
@@ -218,7 +216,7 @@ def trace(scene, sampler, ray, active, *, settings: PathSettings, record: frozen
         reaches = active_em & _not(occluded) & (dr.max(em_weight) > 0.0)
         wo = si.to_local(ds_em.d)
         bsdf_val, bsdf_pdf = bsdf.eval_pdf(bsdf_ctx, si, wo, reaches)
-        mis_em = dr.select(ds_em.delta, 1.0, _mis_weight(ds_em.pdf, bsdf_pdf))
+        mis_em = dr.select(ds_em.delta, 1.0, mis_weight(ds_em.pdf, bsdf_pdf))
         L = L + dr.select(reaches, s["beta"] * bsdf_val * em_weight * mis_em, 0.0)
 
         # Features.

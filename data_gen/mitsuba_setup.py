@@ -11,6 +11,7 @@ import glob
 import os
 import re
 import sys
+from jaxdenoise.errors import JaxdenoiseError
 
 _LIB_DIRS = ("/usr/lib/x86_64-linux-gnu", "/usr/lib/aarch64-linux-gnu", "/usr/lib", "/usr/local/lib")
 _MIN_LLVM = 16
@@ -82,7 +83,7 @@ def setup_mitsuba(prefer: str = "llvm_ad_rgb") -> str:
             mi.set_variant(_CHOSEN)
         return _CHOSEN
     if prefer not in mi.variants():
-        raise ValueError(f"setup_mitsuba: prefer={prefer!r} is not a compiled Mitsuba variant; "
+        raise JaxdenoiseError(f"setup_mitsuba: prefer={prefer!r} is not a compiled Mitsuba variant; "
                          f"available: {mi.variants()}")
     tried: list[str] = []
     if prefer.startswith("llvm"):

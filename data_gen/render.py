@@ -10,8 +10,9 @@ from typing import Callable, Iterable
 
 import numpy as np
 
-from .integrator import FEATURE_DIMS, FEATURES, PathSettings, _RoughnessLookup, derive_seed, trace
+from .integrator import FEATURE_DIMS, FEATURES, PathSettings, RoughnessLookup, derive_seed, trace
 from .mitsuba_setup import is_vectorized
+from jaxdenoise.errors import JaxdenoiseError
 
 DEFAULT_SAMPLES_PER_PASS = 1 << 20
 
@@ -113,16 +114,16 @@ def render_moments(scene, *, spp: int, seed: int, settings: PathSettings, record
     import mitsuba as mi
 
     if not isinstance(spp, (int, np.integer)) or spp < 1:
-        raise ValueError(f"spp must be an int >= 1, got {spp!r}")
+        raise JaxdenoiseError(f"spp must be an int >= 1, got {spp!r}")
     record = frozenset(record)
     unknown = record - set(FEATURES)
     if unknown:
-        raise ValueError(f"record: unknown feature(s) {sorted(unknown)}; known: {list(FEATURES)}")
+        raise JaxdenoiseError(f"record: unknown feature(s) {sorted(unknown)}; known: {list(FEATURES)}")
     names = ["color"] + [f for f in FEATURES if f in record]
     width, height = film_size(scene)
     npix = width * height
     sensor = scene.sensors()[0]
-    rough = _RoughnessLookup(scene) if "roughness" in record else None
+    rough = RoughnessLookup(scene) if "roughness" in record else None
     acc = {k: (np.zeros((npix, _channels(k))), np.zeros((npix, _channels(k)))) for k in names}
 
     if not is_vectorized():
@@ -227,7 +228,7 @@ def render_reference(scene, *, spp: int, seed: int, settings: PathSettings,
     variance of the average, and their difference four times): both numbers go into the manifest.
     """
     if spp < 2:
-        raise ValueError(f"ref_spp must be >= 2 (two independent halves), got {spp}")
+        raise JaxdenoiseError(f"ref_spp must be >= 2 (two independent halves), got {spp}")
     half_a = spp // 2
     half_b = spp - half_a
     ma = render_moments(scene, spp=half_a, seed=derive_seed(seed, "ref-a"), settings=settings,

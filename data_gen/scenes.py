@@ -24,12 +24,13 @@ from typing import Any
 import numpy as np
 
 from .mitsuba_setup import setup_mitsuba
+from jaxdenoise.errors import JaxdenoiseError
 
 FAMILIES: tuple[str, ...] = ("rooms", "objects", "dof", "thin", "fireflies", "envmap")
 ALL_FAMILIES: tuple[str, ...] = FAMILIES + ("mixed",)
 
 
-class SceneError(ValueError):
+class SceneError(JaxdenoiseError):
     """A scene cannot be loaded or built (names the file or argument and what was expected)."""
 
 

@@ -29,6 +29,7 @@ import numpy as np
 
 from .integrator import derive_seed
 from .mitsuba_setup import setup_mitsuba
+from jaxdenoise.errors import JaxdenoiseError
 
 __all__ = ["camera_params", "camera_path", "camera_positions", "render_sequence"]
 
@@ -36,7 +37,7 @@ __all__ = ["camera_params", "camera_path", "camera_positions", "render_sequence"
 def _vec3(value: Any, name: str) -> np.ndarray:
     a = np.asarray(value, dtype=np.float64).reshape(-1)
     if a.shape != (3,) or not np.all(np.isfinite(a)):
-        raise ValueError(f"scene_params[{name!r}]: expected 3 finite numbers, got {value!r}")
+        raise JaxdenoiseError(f"scene_params[{name!r}]: expected 3 finite numbers, got {value!r}")
     return a
 
 
@@ -53,7 +54,7 @@ def camera_params(scene) -> dict[str, Any]:
     if not isinstance(scene, mi.Scene):
         raise TypeError(f"scene: expected a loaded mitsuba.Scene, got {type(scene).__name__}")
     if not scene.sensors():
-        raise ValueError("scene: has no sensor")
+        raise JaxdenoiseError("scene: has no sensor")
     m = np.asarray(scene.sensors()[0].world_transform().matrix, dtype=np.float64).reshape(4, 4)
     origin = m[:3, 3]
     forward = m[:3, 2] / np.linalg.norm(m[:3, 2])
@@ -102,33 +103,33 @@ def camera_positions(scene_params: Mapping[str, Any], n_frames: int, seed: int) 
     at least 2).
     """
     if isinstance(n_frames, bool) or not isinstance(n_frames, (int, np.integer)) or n_frames < 1:
-        raise ValueError(f"n_frames: expected a positive integer, got {n_frames!r}")
+        raise JaxdenoiseError(f"n_frames: expected a positive integer, got {n_frames!r}")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise ValueError(f"seed: expected a non-negative integer, got {seed!r}")
+        raise JaxdenoiseError(f"seed: expected a non-negative integer, got {seed!r}")
     if not isinstance(scene_params, Mapping):
         raise TypeError(f"scene_params: expected a mapping with 'origin' and 'target' (see camera_params), "
                         f"got {type(scene_params).__name__}")
     for key in ("origin", "target"):
         if key not in scene_params:
-            raise ValueError(f"scene_params: missing {key!r} (keys: origin, target, up, radius, target_radius, n_keys)")
+            raise JaxdenoiseError(f"scene_params: missing {key!r} (keys: origin, target, up, radius, target_radius, n_keys)")
     origin = _vec3(scene_params["origin"], "origin")
     target = _vec3(scene_params["target"], "target")
     up = _vec3(scene_params.get("up", (0.0, 1.0, 0.0)), "up")
     dist = float(np.linalg.norm(target - origin))
     if not dist > 0:
-        raise ValueError("scene_params: 'origin' and 'target' coincide (no viewing direction)")
+        raise JaxdenoiseError("scene_params: 'origin' and 'target' coincide (no viewing direction)")
     if np.linalg.norm(up) == 0:
-        raise ValueError("scene_params['up']: is the zero vector")
+        raise JaxdenoiseError("scene_params['up']: is the zero vector")
     up = up / np.linalg.norm(up)
     radius = float(scene_params.get("radius", 0.1 * dist))
     t_radius = float(scene_params.get("target_radius", 0.05 * dist))
     if not (radius >= 0 and math.isfinite(radius)):
-        raise ValueError(f"scene_params['radius']: expected a finite number >= 0, got {radius!r}")
+        raise JaxdenoiseError(f"scene_params['radius']: expected a finite number >= 0, got {radius!r}")
     if not (t_radius >= 0 and math.isfinite(t_radius)):
-        raise ValueError(f"scene_params['target_radius']: expected a finite number >= 0, got {t_radius!r}")
+        raise JaxdenoiseError(f"scene_params['target_radius']: expected a finite number >= 0, got {t_radius!r}")
     n_keys = int(scene_params.get("n_keys", max(2, math.ceil(n_frames / 16) + 1)))
     if n_keys < 2:
-        raise ValueError(f"scene_params['n_keys']: expected an integer >= 2, got {n_keys!r}")
+        raise JaxdenoiseError(f"scene_params['n_keys']: expected an integer >= 2, got {n_keys!r}")
 
     rng = np.random.default_rng([int(seed), 0x5E0])
     o_keys = _keys(rng, origin, radius, n_keys)
@@ -142,7 +143,7 @@ def camera_positions(scene_params: Mapping[str, Any], n_frames: int, seed: int) 
     # returning a NaN/degenerate frame.
     bad = (fnorm < 1e-9 * dist) | (np.linalg.norm(np.cross(fwd, up), axis=1) < 1e-6 * np.maximum(fnorm, 1e-300))
     if bad.any():
-        raise ValueError(
+        raise JaxdenoiseError(
             f"scene_params: frame {int(np.argmax(bad))} would look along 'up' or sit on its target; "
             "lower 'radius'/'target_radius' or change 'up'"
         )
@@ -169,7 +170,7 @@ def _set_camera(scene, transform) -> None:
 
     params = mi.traverse(scene.sensors()[0])
     if "to_world" not in params:
-        raise ValueError("scene: its sensor exposes no 'to_world' parameter, so it cannot be moved")
+        raise JaxdenoiseError("scene: its sensor exposes no 'to_world' parameter, so it cannot be moved")
     params["to_world"] = transform
     params.update()
 
@@ -199,11 +200,11 @@ def render_sequence(scene: Any, out_dir: str | os.PathLike, *, n_frames: int, in
     from .shot import render_shot
 
     if isinstance(n_frames, bool) or not isinstance(n_frames, (int, np.integer)) or n_frames < 1:
-        raise ValueError(f"n_frames: expected a positive integer, got {n_frames!r}")
+        raise JaxdenoiseError(f"n_frames: expected a positive integer, got {n_frames!r}")
     if isinstance(instances, bool) or not isinstance(instances, (int, np.integer)) or instances < 1:
-        raise ValueError(f"instances: expected a positive integer, got {instances!r}")
+        raise JaxdenoiseError(f"instances: expected a positive integer, got {instances!r}")
     if "width" in shot_kwargs or "height" in shot_kwargs:
-        raise ValueError("width/height: set the film size in the scene itself for a sequence")
+        raise JaxdenoiseError("width/height: set the film size in the scene itself for a sequence")
     loaded = load_scene(scene)
     params = dict(camera) if camera is not None else camera_params(loaded)
     origins, targets, up = camera_positions(params, int(n_frames), int(seed))

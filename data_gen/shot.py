@@ -21,6 +21,7 @@ from .integrator import FEATURES, PathSettings, derive_seed
 from .mitsuba_setup import RenderTimer
 from .render import DEFAULT_SAMPLES_PER_PASS, camera_matrices, film_size, render_buffers, render_reference
 from .scenes import describe, load_scene
+from jaxdenoise.errors import JaxdenoiseError
 
 GRADIENT_FIELDS = ("dx", "dy")
 # What a gradient frame's ``seconds`` covers (written into its manifest entry).
@@ -44,7 +45,7 @@ def requested_fields(methods: Iterable[str] | None, buffers: Iterable[str] | Non
         buffers = frozenset(buffers)
         unknown = sorted(buffers - set(ALL_FIELDS))
         if unknown:
-            raise ValueError(f"buffers: unknown buffer name(s) {unknown}; known: {list(ALL_FIELDS)}")
+            raise JaxdenoiseError(f"buffers: unknown buffer name(s) {unknown}; known: {list(ALL_FIELDS)}")
         return buffers | {"color"}
     if methods is not None:
         import importlib
@@ -171,18 +172,18 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
 
     spp = [int(s) for s in (spp if isinstance(spp, (list, tuple)) else [spp])]
     if not spp and not ref_spp:
-        raise ValueError("render_shot: nothing to render (empty spp and ref_spp=0)")
+        raise JaxdenoiseError("render_shot: nothing to render (empty spp and ref_spp=0)")
     if any(s < 1 for s in spp):
-        raise ValueError(f"spp: every value must be >= 1, got {spp}")
+        raise JaxdenoiseError(f"spp: every value must be >= 1, got {spp}")
     if not isinstance(instances, int) or instances < 1:
-        raise ValueError(f"instances must be an int >= 1, got {instances!r}")
+        raise JaxdenoiseError(f"instances must be an int >= 1, got {instances!r}")
     if ref_spp and ref_spp < 2:
-        raise ValueError(f"ref_spp must be 0 (no reference) or >= 2, got {ref_spp}")
+        raise JaxdenoiseError(f"ref_spp must be 0 (no reference) or >= 2, got {ref_spp}")
     shift = DEFAULT_SHIFT if shift is None else shift
     if shift not in SHIFTS:
-        raise ValueError(f"shift: expected one of {SHIFTS}, got {shift!r}")
+        raise JaxdenoiseError(f"shift: expected one of {SHIFTS}, got {shift!r}")
     if primal not in PRIMALS or (primal == "gpt" and shift != "reconnect"):
-        raise ValueError(f"primal: expected 'base', or 'gpt' with shift='reconnect'; got {primal!r} (shift {shift!r})")
+        raise JaxdenoiseError(f"primal: expected 'base', or 'gpt' with shift='reconnect'; got {primal!r} (shift {shift!r})")
     settings = PathSettings(max_depth=int(max_depth), rr_depth=int(rr_depth))
     label = _scene_label(scene)
     loaded = load_scene(scene, width=width, height=height)

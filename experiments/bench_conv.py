@@ -37,39 +37,15 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxdenoise import nn  # noqa: E402
 from jaxdenoise.fsutil import write_json, write_text  # noqa: E402
 from jaxdenoise.solvers import optim  # noqa: E402
+from common import timed, unet  # noqa: E402
 
 RAE_WIDTHS = (32, 43, 57, 76, 101)
 
 
-def unet(widths, out=3, slope=0.1):
-    act = nn.LeakyRelu(slope)
-    stage = lambda c: nn.serial(nn.Conv(c, 3), act, nn.Conv(c, 3), act)
-    return nn.UNet([stage(c) for c in widths], nn.MaxPool(2), stage(widths[-1]), nn.Upsample(2, "nearest"),
-                   [nn.serial(stage(c), *( [nn.Conv(out, 3)] if i == 0 else [])) for i, c in enumerate(widths)])
-
-
 def padded(widths, m):
     return tuple(-(-c // m) * m for c in widths)
-
-
-def timed(fn, *args, runs):
-    t = time.perf_counter()
-    compiled = jax.jit(fn).lower(*args).compile()
-    compile_s = time.perf_counter() - t
-    cost = compiled.cost_analysis()
-    cost = cost[0] if isinstance(cost, (list, tuple)) else cost
-    flops = float(cost.get("flops", float("nan"))) if cost else float("nan")
-    jax.block_until_ready(compiled(*args))
-    ts = []
-    for _ in range(runs):
-        t = time.perf_counter()
-        jax.block_until_ready(compiled(*args))
-        ts.append(time.perf_counter() - t)
-    med = statistics.median(ts)
-    return {"median_s": med, "all_s": ts, "compile_s": compile_s, "gflop": flops / 1e9, "gflops": flops / 1e9 / med}
 
 
 def forward(widths, h, w, runs, dtype=jnp.float32):
@@ -82,7 +58,7 @@ def forward(widths, h, w, runs, dtype=jnp.float32):
     else:
         fn = apply
     n_params = sum(int(np.prod(a.shape)) for a in jax.tree_util.tree_leaves(params))
-    return {**timed(fn, params, x, runs=runs), "params": n_params}
+    return {**timed(fn, params, x, runs=runs)[1], "params": n_params}
 
 
 def train_step(widths, runs, batch=4, frames=7, size=128):
@@ -99,14 +75,14 @@ def train_step(widths, runs, batch=4, frames=7, size=128):
         p, s = opt_update(g, s, p)
         return p, s, loss
 
-    res = timed(step, params, state, x, y, runs=runs)
+    res = timed(step, params, state, x, y, runs=runs)[1]
     res["crops_per_s"] = batch * frames / res["median_s"]
     return res
 
 
 def matmul(n, runs):
     a = jnp.asarray(np.random.default_rng(0).random((n, n), np.float32))
-    return timed(lambda u, v: u @ v, a, a, runs=runs)
+    return timed(lambda u, v: u @ v, a, a, runs=runs)[1]
 
 
 def oidn(h, w, runs):

@@ -32,6 +32,7 @@ sys.path.insert(0, str(ROOT))
 import data_gen  # noqa: E402
 from data_gen import render, scenes  # noqa: E402
 from data_gen.dataset import dataset_size_bytes  # noqa: E402
+from jaxdenoise.metrics import relmse  # noqa: E402
 
 
 def _time(fn, repeats):
@@ -42,10 +43,6 @@ def _time(fn, repeats):
         fn()
         out.append(time.perf_counter() - t)
     return out
-
-
-def _relmse(x, ref):
-    return float(np.mean((x - ref) ** 2 / (ref ** 2 + 0.01)))
 
 
 def _train_set(train_dir: str) -> dict:
@@ -203,8 +200,8 @@ def main(argv=None) -> int:
             for dx in (-1, 0, 1):
                 near |= np.roll(np.roll(bright, dy, 0), dx, 1)
         keep = ~near
-        e_o, e_p = _relmse(ours, pa), _relmse(pb, pa)
-        e_o2, e_p2 = _relmse(ours[keep], pa[keep]), _relmse(pb[keep], pa[keep])
+        e_o, e_p = float(relmse(ours, pa)), float(relmse(pb, pa))
+        e_o2, e_p2 = float(relmse(ours[keep][None], pa[keep][None])), float(relmse(pb[keep][None], pa[keep][None]))
         agree_rows.append({"scene": name, "spp": a.agree_spp, "relmse_ours_vs_path": e_o,
                            "relmse_path_vs_path": e_p, "ratio": e_o / max(e_p, 1e-30),
                            "excluded_pixels": int(near.sum()), "ratio_without_light_edges": e_o2 / max(e_p2, 1e-30),

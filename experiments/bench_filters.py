@@ -26,7 +26,6 @@ import json
 import os
 import platform
 import sys
-import time
 from pathlib import Path
 
 import jax
@@ -35,6 +34,7 @@ import numpy as np
 
 from jaxdenoise.filters import DELTA, ZETA, cross_bilateral, gaussian
 from jaxdenoise.fsutil import write_json, write_text
+from common import timed
 
 CHANNELS = (3, 3, 3, 3, 1)  # position, normal, texture 1, texture 2, visibility (Sec. 3.2)
 
@@ -73,24 +73,6 @@ def naive_cross_bilateral(c, v, feats, fvars, lam_s, lam_c, lam_f, *, radius):
     return num.sum(0) / den.sum(0)
 
 
-def timed(fn, args, runs: int):
-    t0 = time.perf_counter()
-    compiled = fn.lower(*args).compile()
-    compile_s = time.perf_counter() - t0
-    print(f"  compiled in {compile_s:.1f} s", file=sys.stderr)
-    jax.block_until_ready(fn(*args))  # warm-up
-    ts, cpu = [], []
-    for _ in range(runs):
-        t0, c0 = time.perf_counter(), time.process_time()
-        jax.block_until_ready(fn(*args))
-        ts.append(time.perf_counter() - t0)
-        cpu.append(time.process_time() - c0)
-        print(f"  run {len(ts)}: {ts[-1]:.3f} s wall, {cpu[-1]:.3f} s CPU", file=sys.stderr)
-    return {"median_s": float(np.median(ts)), "runs_s": ts, "compile_s": compile_s,
-            "median_cpu_s": float(np.median(cpu)), "cpu_s": cpu,
-            "temp_bytes": int(compiled.memory_analysis().temp_size_in_bytes)}
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--size", default="1200x800", help="WxH of the frame")
@@ -117,7 +99,7 @@ def main(argv=None) -> int:
     c, v, feats, fvars, lams = make_inputs(h, w)
     print("gaussian ...", file=sys.stderr)
     gauss = jax.jit(lambda c: gaussian(c, r / 3.0, radius=r))
-    res["gaussian"] = timed(gauss, (c,), a.runs)
+    res["gaussian"] = timed(gauss, c, runs=a.runs)[1]
     write_json(out / "bench_filters.json", res)  # partial results survive an interrupted run
 
     print(f"naive vs ours at {nw}x{nh} r={a.naive_radius} ...", file=sys.stderr)
@@ -126,15 +108,15 @@ def main(argv=None) -> int:
     rn = a.naive_radius
     naive = jax.jit(lambda c, v, f, fv, ls, lc, lf: naive_cross_bilateral(c, v, f, fv, ls, lc, lf, radius=rn))
     ours_s = jax.jit(lambda c, v, f, fv, ls, lc, lf: cross_bilateral(c, v, f, fv, ls, lc, lf, radius=rn))
-    res["naive_small"] = timed(naive, sargs, a.runs)
-    res["ours_small"] = timed(ours_s, sargs, a.runs)
+    res["naive_small"] = timed(naive, *sargs, runs=a.runs)[1]
+    res["ours_small"] = timed(ours_s, *sargs, runs=a.runs)[1]
     write_json(out / "bench_filters.json", res)
     res["small"] = {"size": [nw, nh], "radius": rn,
                     "max_abs_diff": float(jnp.max(jnp.abs(naive(*sargs) - ours_s(*sargs))))}
     ours = jax.jit(lambda c, v, f, fv, ls, lc, lf: cross_bilateral(c, v, f, fv, ls, lc, lf, radius=r))
     args = (c, v, feats, fvars, lams[0], lams[1], lams[2:])
     print(f"ours {w}x{h} r={r} ...", file=sys.stderr)
-    res["ours"] = timed(ours, args, a.runs)
+    res["ours"] = timed(ours, *args, runs=a.runs)[1]
     write_json(out / "bench_filters.json", res)
     res["ours"]["pixel_offsets_per_s"] = h * w * (2 * r + 1) ** 2 / res["ours"]["median_s"]
     tw, th = (int(s) for s in a.target.split("x"))

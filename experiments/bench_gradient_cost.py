@@ -37,6 +37,7 @@ from data_gen.mitsuba_setup import setup_mitsuba  # noqa: E402
 from data_gen.render import render_buffers  # noqa: E402
 from data_gen.scenes import build_scene, default_scene, load_scene  # noqa: E402
 from jaxdenoise.fsutil import write_json, write_text  # noqa: E402
+from jaxdenoise.metrics import relmse  # noqa: E402
 
 
 def scenes(size: int) -> dict:
@@ -69,10 +70,6 @@ def median_time(fn, runs: int) -> tuple[float, list[float]]:
         fn()
         ts.append(time.perf_counter() - t0)
     return statistics.median(ts), ts
-
-
-def relmse(x, ref) -> float:
-    return float(np.mean((np.asarray(x, np.float64) - ref) ** 2 / (ref ** 2 + 1e-2)))
 
 
 def main(argv=None) -> int:
@@ -124,16 +121,16 @@ def main(argv=None) -> int:
             for s in spps:
                 g = render_gradients(scene, spp=s, seed=100 + s, shift=shift)
                 buf = Buffers(color=g["primal"], dx=g["dx"], dy=g["dy"], spp=s)
-                q = {"spp": s, "input": relmse(g["primal"], ref)}
+                q = {"spp": s, "input": float(relmse(g["primal"], ref))}
                 for n, m in solvers.items():
                     np.asarray(m.apply(params[n], buf))  # warm-up (compilation)
                     t0 = time.perf_counter()
                     rec = np.asarray(m.apply(params[n], buf))
                     q[f"{n}_solve_s"] = time.perf_counter() - t0
-                    q[n] = relmse(rec, ref)
+                    q[n] = float(relmse(rec, ref))
                 eq = max(1, int(round(s * ratio)))
                 q["equal_time_spp"] = eq
-                q["plain_equal_time"] = relmse(render_buffers(scene, spp=eq, seed=200 + s, settings=settings)["color"], ref)
+                q["plain_equal_time"] = float(relmse(render_buffers(scene, spp=eq, seed=200 + s, settings=settings)["color"], ref))
                 row["quality"].append(q)
             rows.append(row)
             print(json.dumps({k: v for k, v in row.items() if not k.endswith("runs_s")}), flush=True)

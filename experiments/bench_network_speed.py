@@ -23,7 +23,8 @@ import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
 from bench_conv import matmul, oidn, timed  # noqa: E402
-from jaxdenoise.api import prepare, resolve  # noqa: E402
+from jaxdenoise.api import resolve  # noqa: E402
+from jaxdenoise.inference import prepare  # noqa: E402
 from jaxdenoise.buffers import CHANNELS, Buffers  # noqa: E402
 from jaxdenoise.fsutil import write_json  # noqa: E402
 

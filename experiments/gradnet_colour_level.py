@@ -37,7 +37,8 @@ def _box(x: np.ndarray) -> np.ndarray:
 
 def levels(weights: str | None, folder: str, spp: int, count: int) -> list[list[float]]:
     """Per frame, per channel: median over the frame of box(output) / box(base), no post-process."""
-    from jaxdenoise.api import inference_fn, prepare, resolve
+    from jaxdenoise.api import resolve
+    from jaxdenoise.inference import inference_fn, prepare
     from jaxdenoise.data import discover, renders_by_spp
     from jaxdenoise.io import read_buffers
     from jaxdenoise.methods import Method

@@ -21,7 +21,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from jaxdenoise import metrics  # noqa: E402
-from jaxdenoise.api import inference_fn, prepare, resolve  # noqa: E402
+from jaxdenoise.api import resolve  # noqa: E402
+from jaxdenoise.inference import inference_fn, prepare  # noqa: E402
 from jaxdenoise.fsutil import write_json  # noqa: E402
 from jaxdenoise.methods import Method  # noqa: E402
 

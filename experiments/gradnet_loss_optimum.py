@@ -25,7 +25,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from jaxdenoise import metrics  # noqa: E402
-from jaxdenoise.api import inference_fn, prepare, resolve  # noqa: E402
+from jaxdenoise.api import resolve  # noqa: E402
+from jaxdenoise.inference import inference_fn, prepare  # noqa: E402
 from jaxdenoise.fsutil import write_json  # noqa: E402
 from jaxdenoise.methods import gradnet as G  # noqa: E402
 from jaxdenoise.solvers.optim import adam  # noqa: E402
@@ -62,8 +63,8 @@ def main(argv=None) -> int:
                 w = G.first_order_weights(x["tb"], cfg)
 
             def loss(y):
-                v = G._grad_loss(G.decompress(y, cfg), x, cfg) + cfg.alpha * jnp.abs(y - x["tb"]).sum(-1).mean()
-                return v + lam * G._first_order(y, g, x["feat"], w) if lam else v
+                v = G.grad_loss(G.decompress(y, cfg), x, cfg) + cfg.alpha * jnp.abs(y - x["tb"]).sum(-1).mean()
+                return v + lam * G.first_order_loss(y, g, x["feat"], w) if lam else v
 
             init, update = adam(args.lr, b1=0.9, b2=0.999)
             y = x["tb"]

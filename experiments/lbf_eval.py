@@ -32,6 +32,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from jaxdenoise import api, metrics  # noqa: E402
+from jaxdenoise.inference import inference_fn  # noqa: E402
 from jaxdenoise.data import discover, renders_by_spp  # noqa: E402
 from jaxdenoise.fsutil import write_json, write_text  # noqa: E402
 from jaxdenoise.io import read_buffers, read_image  # noqa: E402
@@ -74,8 +75,8 @@ def main() -> None:
     parts = set(args.parts.split(","))
     m_lbf, p_lbf = api.resolve("lbf", args.weights_lbf) if "lbf" in parts else (None, None)
     m_nlm, p_nlm = api.resolve("lbf-nlm", args.weights_nlm) if "lbf-nlm" in parts else (None, None)
-    f_lbf = api.inference_fn(m_lbf) if m_lbf else None
-    f_nlm = api.inference_fn(m_nlm) if m_nlm else None
+    f_lbf = inference_fn(m_lbf) if m_lbf else None
+    f_nlm = inference_fn(m_nlm) if m_nlm else None
     cfg = lbf.Config()  # the global baseline uses the paper's filter settings (same as lbf)
     old_path = out / "lbf_eval.json"
     old = {r["file"]: r for r in json.loads(old_path.read_text())["records"]} if old_path.is_file() else {}

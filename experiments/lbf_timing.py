@@ -12,9 +12,7 @@ from __future__ import annotations
 
 import argparse
 import os
-import statistics
 import sys
-import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -28,6 +26,7 @@ from jaxdenoise.filters import gaussian  # noqa: E402
 from jaxdenoise.fsutil import write_json, write_text  # noqa: E402
 from jaxdenoise.io import read_buffers  # noqa: E402
 from jaxdenoise.methods import get, lbf  # noqa: E402
+from common import timed  # noqa: E402
 
 
 def tile(b, h: int, w: int):
@@ -38,20 +37,6 @@ def tile(b, h: int, w: int):
         reps = (-(-h // a.shape[0]), -(-w // a.shape[1]), 1)
         return np.tile(a, reps)[:h, :w]
     return b.__class__(**{k: t(v) for k, v in b.to_dict().items()})
-
-
-def timed(fn, *args, runs: int):
-    t = time.perf_counter()
-    lowered = jax.jit(fn).lower(*args)
-    compiled = lowered.compile()
-    compile_s = time.perf_counter() - t
-    jax.block_until_ready(compiled(*args))  # warm-up
-    ts = []
-    for _ in range(runs):
-        t = time.perf_counter()
-        out = jax.block_until_ready(compiled(*args))
-        ts.append(time.perf_counter() - t)
-    return out, {"median": statistics.median(ts), "all": ts, "compile": compile_s}
 
 
 def main() -> None:
@@ -69,7 +54,7 @@ def main() -> None:
            "load_avg_start": os.getloadavg(), "command": "python " + " ".join(sys.argv), "methods": {}}
     _, g = timed(lambda c: gaussian(c, 2.0, radius=6), tile(b0, args.height, args.width).color, runs=args.runs)
     res["gaussian_sigma2"] = g
-    print(f"gaussian: {g['median']:.3f} s", flush=True)
+    print(f"gaussian: {g['median_s']:.3f} s", flush=True)
     for name in args.methods.split(","):
         try:
             m, params = api.resolve(name)
@@ -82,11 +67,11 @@ def main() -> None:
         prep, t_feat = timed(lambda bb: lbf.prepare(bb, cfg), b, runs=args.runs)
         lam, t_net = timed(lambda p, x: lbf.filter_params(p, x, cfg), params, prep["x"], runs=args.runs)
         _, t_filt = timed(lambda l, pr: lbf.postprocess(lbf.filter_with(l, pr, cfg), cfg), lam, prep, runs=args.runs)
-        total = t_feat["median"] + t_net["median"] + t_filt["median"]
+        total = t_feat["median_s"] + t_net["median_s"] + t_filt["median_s"]
         res["methods"][name] = {"features": t_feat, "network": t_net, "filter": t_filt, "total_median": total,
-                                "ratio_to_gaussian": total / g["median"]}
-        print(f"{name}: features {t_feat['median']:.2f} s, network {t_net['median']:.3f} s, "
-              f"filter {t_filt['median']:.2f} s, total {total:.2f} s", flush=True)
+                                "ratio_to_gaussian": total / g["median_s"]}
+        print(f"{name}: features {t_feat['median_s']:.2f} s, network {t_net['median_s']:.3f} s, "
+              f"filter {t_filt['median_s']:.2f} s, total {total:.2f} s", flush=True)
     res["load_avg_end"] = os.getloadavg()
     out = Path(args.out)
     write_json(out / "lbf_timing.json", res)
@@ -97,10 +82,10 @@ def main() -> None:
              "| method | features (s) | network (s) | filter + spikes (s) | total (s) | x Gaussian blur | compile (s) |",
              "|---|---|---|---|---|---|---|"]
     for name, r in res["methods"].items():
-        comp = r["features"]["compile"] + r["network"]["compile"] + r["filter"]["compile"]
-        lines.append(f"| {name} | {r['features']['median']:.2f} | {r['network']['median']:.3f} | "
-                     f"{r['filter']['median']:.2f} | {r['total_median']:.2f} | {r['ratio_to_gaussian']:.0f} | {comp:.1f} |")
-    lines.append(f"| gaussian (sigma 2, 13x13) | - | - | {g['median']:.3f} | {g['median']:.3f} | 1 | {g['compile']:.1f} |")
+        comp = r["features"]["compile_s"] + r["network"]["compile_s"] + r["filter"]["compile_s"]
+        lines.append(f"| {name} | {r['features']['median_s']:.2f} | {r['network']['median_s']:.3f} | "
+                     f"{r['filter']['median_s']:.2f} | {r['total_median']:.2f} | {r['ratio_to_gaussian']:.0f} | {comp:.1f} |")
+    lines.append(f"| gaussian (sigma 2, 13x13) | - | - | {g['median_s']:.3f} | {g['median_s']:.3f} | 1 | {g['compile_s']:.1f} |")
     lines += ["", "Paper (GTX TITAN GPU): 8.4 s total, 5 s features, 3.4 s network + filter (goal 8.4 s, stretch 3.4 s)."]
     write_text(out / "lbf_timing.md", "\n".join(lines) + "\n")
 

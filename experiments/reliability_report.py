@@ -4,7 +4,7 @@
 
 Sources (written here, 16x16): a noisy frame with every layer of the EXR contract, a reference, a
 gradient frame (R G B + dx + dy), a sequence frame (`frame_0000/`), and the shipped `lbf`
-``params.npz``. Every mutation kind of `jaxdenoise._fuzz` is applied ``--per-kind`` times per
+``params.npz``. Every mutation kind of `jaxdenoise.fuzz` is applied ``--per-kind`` times per
 source and seed, and each mutated file goes through `read_buffers`, `read_image`, `read_sequence`,
 `jaxdenoise denoise`, `jaxdenoise bench` (EXRs) or the weights loader (`params.npz`), each case in
 a worker process with a time limit. Then the tampered-weights cases of the reliability issue are
@@ -30,7 +30,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 import numpy as np  # noqa: E402
 
-from jaxdenoise import _fuzz  # noqa: E402
+from jaxdenoise import fuzz  # noqa: E402
 from jaxdenoise.fsutil import write_json, write_text  # noqa: E402
 
 OUTCOMES = ("ok", "named", "other", "crash", "hang")
@@ -151,8 +151,8 @@ def main() -> None:
         tmp = Path(tmp)
         src = sources(tmp / "src")
         for seed in [int(s) for s in args.seeds.split(",")]:
-            cases = _fuzz.make_cases(src, tmp / f"cases_{seed}", n_per_kind=args.per_kind, seed=seed)
-            for r in _fuzz.run_cases(cases, timeout=args.timeout):
+            cases = fuzz.make_cases(src, tmp / f"cases_{seed}", n_per_kind=args.per_kind, seed=seed)
+            for r in fuzz.run_cases(cases, timeout=args.timeout):
                 results.append({k: r[k] for k in ("reader", "source", "kind", "outcome", "message", "seconds")}
                                | {"seed": seed})
             print(f"seed {seed}: {len(cases)} cases ({time.time() - t0:.0f} s)", flush=True)
@@ -187,7 +187,7 @@ def main() -> None:
         lines.append(f"| {reader} | {kind} | {sum(c.values())} | " + " | ".join(str(c.get(o, 0)) for o in OUTCOMES)
                      + " |")
     lines += ["", "## Distinct messages per mutation kind (file paths as FILE, numbers as N)", ""]
-    for kind in _fuzz.KINDS:
+    for kind in fuzz.KINDS:
         lines.append(f"**{kind}**")
         lines.append("")
         for msg, n in messages.get(kind, collections.Counter()).most_common(8):
@@ -208,7 +208,7 @@ def main() -> None:
     lines += ["", "Resource limits: a header claiming 10^6 x 10^6 pixels is refused before allocation "
               "(OpenImageIO's own size limit, then ours: half the machine's memory), see the *oversized* rows; "
               "a frame whose compiled program needs more memory than is available is refused with XLA's "
-              "estimate before it runs (`jaxdenoise.api.Compiled`, tested in tests/test_api.py).", ""]
+              "estimate before it runs (`jaxdenoise.inference.Compiled`, tested in tests/test_api.py).", ""]
     write_text(out / "reliability.md", "\n".join(lines) + "\n")
     print(f"reliability: {len(results)} cases, totals {dict(totals)}; tampered weights refused "
           f"{sum(w['refused'] for w in weights)}/{len(weights)} -> {out / 'reliability.md'}")

@@ -19,11 +19,10 @@ import argparse
 import dataclasses
 import json
 import os
-import tarfile
 import time
 from pathlib import Path
 
-import numpy as np
+from common import tar_folders
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -55,15 +54,6 @@ def prepare(args) -> None:
         out[part]["frames_available"] = n
         print(part, json.dumps(out[part]))
     (work / "exports.json").write_text(json.dumps(out, indent=1))
-
-
-def _tar(out: Path, name: str, folders: dict[str, Path]) -> None:
-    tmp = out / f".{name}.tmp"
-    with tarfile.open(tmp, "w") as t:
-        for arc, folder in folders.items():
-            if folder.is_dir():
-                t.add(folder, arcname=arc)
-    tmp.rename(out / name)
 
 
 def run(args) -> None:
@@ -117,7 +107,7 @@ def run(args) -> None:
                                     ("abl_semc_s1", "semc", 1)]:
             one(name, dataclasses.replace(base, variant=variant), seed, n, 3 * args.ablation_seconds, 10**7)
         for variant in ("demc", "nosn", "semc"):
-            _tar(out, f"ablation_{variant}.tar", {f"{variant}_s{s}": work / f"abl_{variant}_s{s}" / "best"
+            tar_folders(out, f"ablation_{variant}.tar", {f"{variant}_s{s}": work / f"abl_{variant}_s{s}" / "best"
                                                   for s in (0, 1)})
     if args.main_seconds > 0:
         # DEMC seed 1 ran with its step already compiled: its rate sizes the main run's schedule.
@@ -125,7 +115,7 @@ def run(args) -> None:
         steps = int(rate["steps"] / max(rate["seconds"], 1e-9) * args.main_seconds) if rate else args.main_steps
         summary["main_planned_steps"] = steps
         one(args.main_name, base, 0, steps, 1.15 * args.main_seconds, max(1, steps // 3), args.init_from)
-        _tar(out, f"{args.main_name}.tar", {"best": work / args.main_name / "best",
+        tar_folders(out, f"{args.main_name}.tar", {"best": work / args.main_name / "best",
                                             "weights": work / args.main_name / "weights"})
     summary["finished"] = time.time()
     save_summary()

@@ -33,7 +33,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from train_demc import _tar  # noqa: E402
+from common import tar_folders  # noqa: E402
 
 PAPER_EPOCH_PATCHES = 11_785  # Sec. 5.1: 13,500 patches of 256 x 256, 846 illegal, 869 held out for testing
 
@@ -93,8 +93,8 @@ def run(args) -> None:
     tmp = out / ".summary.json.tmp"
     tmp.write_text(json.dumps(rec, indent=1, default=str))
     tmp.rename(out / "summary.json")
-    _tar(out, "best.tar", {"best": runs / "best"})
-    _tar(out, "last.tar", {"weights": runs / "weights"})
+    tar_folders(out, "best.tar", {"best": runs / "best"})
+    tar_folders(out, "last.tar", {"weights": runs / "weights"})
     print(s["line"], flush=True)
 
 

@@ -33,7 +33,7 @@ import sys
 import time
 from pathlib import Path
 
-from train_demc import _tar
+from common import tar_folders
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -121,8 +121,8 @@ def run(args) -> None:
             summary["main_rc"] = p.returncode
             save()
             # one tar each: a device machine sends back files of at most 16 MiB
-            _tar(out, f"{args.main_name}_best.tar", {"best": runs / args.main_name / "best"})
-            _tar(out, f"{args.main_name}_last.tar", {"weights": runs / args.main_name / "weights"})
+            tar_folders(out, f"{args.main_name}_best.tar", {"best": runs / args.main_name / "best"})
+            tar_folders(out, f"{args.main_name}_last.tar", {"weights": runs / args.main_name / "weights"})
         if args.ablation_seconds > 0:
             names = [(f"abl_{v}_s{s}", v, s) for v in args.variants.split(",") for s in (0, 1)]
             procs = [_launch(args, n, v, s, args.ablation_crop, args.ablation_seconds, args.ablation_validate_every, log)

@@ -36,16 +36,10 @@ from jaxdenoise.fsutil import write_json  # noqa: E402
 from jaxdenoise.methods import get  # noqa: E402
 from jaxdenoise.pipeline import open_training_data  # noqa: E402
 from jaxdenoise.solvers import optim  # noqa: E402
+from common import unet  # noqa: E402
 
 WIDTHS = (16, 32, 64)
 FIELDS = ("albedo", "normal")
-
-
-def unet():
-    act = nn.LeakyRelu(0.1)
-    stage = lambda c: nn.serial(nn.Conv(c, 3), act, nn.Conv(c, 3), act)
-    return nn.UNet([stage(c) for c in WIDTHS], nn.MaxPool(2), stage(WIDTHS[-1]), nn.Upsample(2, "nearest"),
-                   [nn.serial(stage(c), *([nn.Conv(3, 3)] if i == 0 else [])) for i, c in enumerate(WIDTHS)])
 
 
 def features(b):
@@ -71,7 +65,7 @@ def main() -> None:
     refs = [v["reference"] for v in val]
     gauss = float(np.mean([metrics.relmse(denoise(v["buffers"], "gaussian"), r) for v, r in zip(val, refs)]))
     raw = float(np.mean([metrics.relmse(v["buffers"].color, r) for v, r in zip(val, refs)]))
-    init, apply = unet()
+    init, apply = unet(WIDTHS)
     _, params = init(jax.random.PRNGKey(args.seed), (-1, args.crop, args.crop, 3 + 3 * len(FIELDS)))
     n_params = int(sum(np.prod(a.shape) for a in jax.tree_util.tree_leaves(params)))
     opt_init, opt_update = optim.adam(1e-3)

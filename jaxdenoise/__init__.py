@@ -11,6 +11,7 @@ Public API::
 """
 from .api import denoise, denoise_sequence, load
 from .buffers import Buffers, BuffersError, stack
+from .errors import JaxdenoiseError, JaxdenoiseWarning
 from .methods import MethodError
 from .methods import names as method_names
 
@@ -26,10 +27,12 @@ def __getattr__(name: str):
         return getattr(io, name)
     raise AttributeError(f"module 'jaxdenoise' has no attribute {name!r}")
 
-__version__ = "0.1.0"
+# The one version number (pyproject.toml reads it): bumped whenever outputs change (a method's
+# result, a file format, a weight), each bump listed in CHANGELOG.md.
+__version__ = "0.2.0"
 
 __all__ = [
-    "Buffers", "BuffersError", "ExrError", "MethodError", "denoise", "denoise_sequence", "load", "method_names",
+    "Buffers", "BuffersError", "ExrError", "JaxdenoiseError", "JaxdenoiseWarning", "MethodError", "denoise", "denoise_sequence", "load", "method_names",
     "read_buffers", "read_image", "read_sequence", "stack", "write_buffers", "write_image",
     "__version__",
 ]

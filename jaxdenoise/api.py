@@ -7,8 +7,8 @@ frame carries what the method needs, and feed it nothing else.
 """
 from __future__ import annotations
 
-import functools
 import os
+import warnings
 from pathlib import Path
 from typing import Any, Callable
 
@@ -17,6 +17,8 @@ import numpy as np
 
 from . import checkpoint
 from .buffers import Buffers, BuffersError
+from .errors import JaxdenoiseWarning
+from .inference import inference_fn, notes, prepare
 from .methods import Method, MethodError, get
 
 
@@ -64,101 +66,6 @@ def _registered() -> set[str]:
     return set(names())
 
 
-def check_finite(buffers: Buffers, names, *, where: str | None = None) -> None:
-    """Raise naming the buffer (and ``where``, e.g. the file) and the count of NaN/Inf values
-    (methods are not fed garbage)."""
-    for name in sorted(names):
-        value = getattr(buffers, name)
-        if value is None:
-            continue
-        bad = int(np.size(value) - np.isfinite(np.asarray(value, dtype=np.float32)).sum())
-        if bad:
-            raise BuffersError(f"{where + ': ' if where else ''}buffer '{name}' has {bad} NaN/Inf value(s); "
-                               f"repair the input first (jaxdenoise.io.read_buffers(..., repair='zero'))")
-
-
-def available_memory() -> int:
-    """Bytes this process may still allocate: the kernel's MemAvailable (Linux), else physical memory."""
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-
-
-class Compiled:
-    """A method's jitted inference, compiled ahead of time once per input signature (tree structure,
-    shapes, dtypes) so that XLA's memory estimate is known **before** the program runs: a frame whose
-    program needs more than the available memory (arguments + outputs + temporaries, from
-    ``compiled.memory_analysis()``) is refused with that estimate (a `MethodError`) instead of being
-    killed by the operating system. ``compile(params, buffers)`` returns ``(compile seconds, XLA
-    bytes)`` (0 seconds when the signature was compiled before)."""
-
-    def __init__(self, m: Method) -> None:
-        self.name = m.name
-        self._jit = jax.jit(lambda params, buffers: m.module.apply(params, buffers, m.config))
-        self._cache: dict = {}
-
-    @staticmethod
-    def _key(params: Any, buffers: Any) -> tuple:
-        leaves, tree = jax.tree_util.tree_flatten((params, buffers))
-        return tree, tuple((np.shape(x), np.dtype(getattr(x, "dtype", type(x))).str) for x in leaves)
-
-    def compile(self, params: Any, buffers: Any) -> tuple[float, int | None]:
-        key = self._key(params, buffers)
-        if key in self._cache:
-            return 0.0, self._cache[key][1]
-        import time
-
-        t0 = time.perf_counter()
-        exe = self._jit.lower(params, buffers).compile()
-        seconds = time.perf_counter() - t0
-        ma = exe.memory_analysis()
-        need = (ma.argument_size_in_bytes + ma.output_size_in_bytes + ma.temp_size_in_bytes) if ma else None
-        free = available_memory()
-        if need is not None and need > free:
-            shape = getattr(buffers, "shape", None)
-            raise MethodError(f"method '{self.name}': this input ({shape}) needs {need / 2**30:.1f} GiB by XLA's "
-                              f"estimate (arguments + outputs + temporaries), more than the {free / 2**30:.1f} GiB "
-                              f"available; denoise a smaller frame or crop, or free memory")
-        self._cache[key] = (exe, need)
-        return seconds, need
-
-    def __call__(self, params: Any, buffers: Any) -> Any:
-        key = self._key(params, buffers)
-        if key not in self._cache:
-            self.compile(params, buffers)
-        return self._cache[key][0](params, buffers)
-
-
-@functools.lru_cache(maxsize=64)
-def _compiled(module, config, name) -> Compiled:
-    return Compiled(Method(name=name, module=module, config=config))
-
-
-def inference_fn(m: Method) -> Callable[[Any, Buffers], Any]:
-    """``fn(params, buffers) -> image``: a `Compiled` (cached per method and config: compiled once per
-    input signature, memory checked first) unless the method is foreign code (``JITTABLE = False``)."""
-    if m.jittable:
-        return _compiled(m.module, m.config, m.name)
-    return lambda params, buffers: m.module.apply(params, buffers, m.config)
-
-
-def prepare(m: Method, buffers: Buffers, *, where: str | None = None) -> Buffers:
-    """Validate ``buffers`` for ``m`` and keep only what it reads (required + present optional ones)
-    and the frame's metadata (``spp``; `Buffers.only` never drops it). ``where`` (e.g. the file
-    name) goes into every error."""
-    if not isinstance(buffers, Buffers):
-        raise BuffersError(f"{where + ': ' if where else ''}expected a jaxdenoise.Buffers, got {type(buffers).__name__}")
-    buffers.check_needs(m.required(), m.name, where=where)
-    used = m.needs() & buffers.present()
-    check_finite(buffers, used, where=where)
-    return buffers.only(used)
-
-
 def denoise(buffers: Buffers, method: str = "gaussian", params: Any = None, *,
             weights: str | os.PathLike | None = None) -> np.ndarray:
     """Denoise one frame (or a batch) with a registered method; returns a float32 numpy image."""
@@ -166,8 +73,16 @@ def denoise(buffers: Buffers, method: str = "gaussian", params: Any = None, *,
         m = get(method) if isinstance(method, str) else method
     else:
         m, params = resolve(method, weights)
-    out = inference_fn(m)(params, prepare(m, buffers))
+    prepared = prepare(m, buffers)
+    warn_notes(m, buffers)
+    out = inference_fn(m)(params, prepared)
     return np.asarray(out, dtype=np.float32)
+
+
+def warn_notes(m: Method, buffers: Buffers) -> None:
+    """One `JaxdenoiseWarning` per remark on running ``m`` on ``buffers`` (`inference.notes`)."""
+    for note in notes(m, buffers):
+        warnings.warn(note, JaxdenoiseWarning, stacklevel=3)
 
 
 def denoise_sequence(frames, method: str = "gaussian", params: Any = None, *,
@@ -182,7 +97,10 @@ def denoise_sequence(frames, method: str = "gaussian", params: Any = None, *,
         m = get(method) if isinstance(method, str) else method
     else:
         m, params = resolve(method, weights)
-    return run_all(m, params, unstack(frames))
+    frames = unstack(frames)
+    if frames and isinstance(frames[0], Buffers):
+        warn_notes(m, frames[0])  # once per call: the first frame's
+    return run_all(m, params, frames)
 
 
 def unstack(frames) -> list[Buffers]:
@@ -213,7 +131,9 @@ def load(method: str, path: str | os.PathLike | None = None) -> Callable[[Buffer
     fn = inference_fn(m)
 
     def infer(buffers: Buffers):
-        return fn(params, prepare(m, buffers))
+        prepared = prepare(m, buffers)
+        warn_notes(m, buffers)
+        return fn(params, prepared)
 
     def sequence(frames):
         from .sequence import run

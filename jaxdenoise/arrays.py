@@ -1,5 +1,6 @@
-"""Array helpers shared by filters and solvers: concreteness test for eager validation, the floating
-compute dtype (private to jaxdenoise; `filters` and `solvers` are peers, so neither owns these)."""
+"""Array helpers shared by filters, solvers and methods: concreteness test for eager validation,
+the floating compute dtype, edge-replicated padding and pixel blocks (not re-exported by
+`jaxdenoise`; `filters`, `solvers` and `methods` are peers, so none of them owns these)."""
 from __future__ import annotations
 
 from typing import Any
@@ -23,3 +24,24 @@ def compute_dtype(*xs: Any) -> Any:
     if not jnp.issubdtype(dt, jnp.floating) or jnp.finfo(dt).bits < 32:
         return jnp.float32
     return dt
+
+
+def pad_edge(x: jax.Array, r: int) -> jax.Array:
+    """Edge-replicate ``r`` pixels on the two spatial axes of an ``(..., H, W, C)`` array."""
+    pad = [(0, 0)] * (x.ndim - 3) + [(r, r), (r, r), (0, 0)]
+    return jnp.pad(x, pad, mode="edge")
+
+
+def edge_blocks(x: jax.Array, r: int, *, axis: int = -1) -> jax.Array:
+    """The ``(2r+1)^2`` values of the edge-padded ``(2r+1) x (2r+1)`` block around every pixel of an
+    ``(..., H, W, C)`` array, stacked on a new axis ``axis`` (``-1``: ``(..., H, W, C, (2r+1)^2)``;
+    ``0``: ``((2r+1)^2, ..., H, W, C)``).
+
+    Entry ``k = (dy + r) (2r+1) + (dx + r)`` holds the neighbour at offset ``(dy, dx)`` (row-major,
+    the centre pixel at ``k = 2r (r+1)``); outside pixels are edge-replicated (`pad_edge`). This
+    materializes the whole stack: for small blocks only (module docstring).
+    """
+    h, w = x.shape[-3], x.shape[-2]
+    p = pad_edge(x, r)
+    out = [p[..., dy:dy + h, dx:dx + w, :] for dy in range(2 * r + 1) for dx in range(2 * r + 1)]
+    return jnp.stack(out, axis=axis)

@@ -33,13 +33,15 @@ import jax
 import numpy as np
 
 from . import metrics
-from .api import inference_fn, prepare, resolve
+from .api import resolve
+from .inference import buffers_read, inference_fn, notes, prepare
 from .buffers import Buffers
 from .data import Shot, discover, sequences
 from .fsutil import atomic_path, write_json, write_text
 from .io import read_buffers, read_image
 from .methods import Method, MethodError
 from .viewer import ImageStore, write_viewer
+from .errors import JaxdenoiseError
 
 MIN_RUNS = 5
 
@@ -83,7 +85,7 @@ def time_method(m: Method, params: Any, buffers: Buffers, *, runs: int = MIN_RUN
     """Run ``m`` on one frame by the protocol; returns image, seconds, compile_seconds,
     rss_peak_bytes, xla_bytes (module docstring)."""
     if runs < MIN_RUNS:
-        raise ValueError(f"runs={runs}; the protocol needs at least {MIN_RUNS} timed runs")
+        raise JaxdenoiseError(f"runs={runs}; the protocol needs at least {MIN_RUNS} timed runs")
     buffers = prepare(m, buffers, where=where)
     buffers = jax.device_put(buffers) if m.jittable else buffers
     fn: Callable = inference_fn(m)
@@ -110,7 +112,7 @@ def time_sequence(m: Method, params: Any, frames: list[Buffers], *, runs: int = 
     from .sequence import run_all
 
     if runs < MIN_RUNS:
-        raise ValueError(f"runs={runs}; the protocol needs at least {MIN_RUNS} timed runs")
+        raise JaxdenoiseError(f"runs={runs}; the protocol needs at least {MIN_RUNS} timed runs")
     t_len = len(frames)
     times = []
     with _RssPeak() as rss:
@@ -232,7 +234,7 @@ def run(data_dir: str | os.PathLike, methods: Iterable[str], out_dir: str | os.P
         for render in shot.renders:
             buffers, _ = read_buffers(render.path)
             if buffers.shape != ref.shape[:-1]:
-                raise ValueError(f"{render.path}: size {buffers.shape} differs from {shot.reference} {ref.shape[:-1]}")
+                raise JaxdenoiseError(f"{render.path}: size {buffers.shape} differs from {shot.reference} {ref.shape[:-1]}")
             for name, (m, params) in resolved.items():
                 bar.set_postfix_str(f"{shot.name}/{render.path.name} {name}")
                 missing = sorted(m.required() - buffers.present())
@@ -253,7 +255,8 @@ def run(data_dir: str | os.PathLike, methods: Iterable[str], out_dir: str | os.P
                     skipped.append({"method": name, "file": str(render.path.relative_to(data_dir)), "reason": str(e)})
                     bar.update(1)
                     continue
-                rec = _record(shot, render, name, r, r["image"], ref, data_dir)
+                rec = _record(shot, render, name, r, r["image"], ref, data_dir, buffers=buffers_read(m, buffers),
+                              notes=notes(m, buffers))
                 if d is not None:  # the quality columns as the workers computed them
                     rec.update({k: d[k] for k in ("relmse", "ssim", "psnr")})
                 rec["reference_image"] = store.add(f"ref:{rec['shot']}:{shot.reference.name}", ref)
@@ -268,7 +271,7 @@ def run(data_dir: str | os.PathLike, methods: Iterable[str], out_dir: str | os.P
             frames = [read_buffers(r.path)[0] for r in renders]
             for r, b, ref in zip(renders, frames, refs):
                 if b.shape != ref.shape[:-1]:
-                    raise ValueError(f"{r.path}: size {b.shape} differs from its reference {ref.shape[:-1]}")
+                    raise JaxdenoiseError(f"{r.path}: size {b.shape} differs from its reference {ref.shape[:-1]}")
             for name, (m, params) in resolved.items():
                 bar.set_postfix_str(f"{seq.name}/{rname} {name}")
                 lacking = {str(r.path.relative_to(data_dir)): sorted(m.required() - b.present())
@@ -281,7 +284,8 @@ def run(data_dir: str | os.PathLike, methods: Iterable[str], out_dir: str | os.P
                     continue
                 r = time_sequence(m, params, frames, runs=runs, names=[str(x.path) for x in renders])
                 recs = [_record(s, x, name, r, img, ref, data_dir, sequence=_relative(seq.folder, data_dir),
-                                frame=s.frame) for s, x, img, ref in zip(seq.shots, renders, r["images"], refs)]
+                                frame=s.frame, buffers=buffers_read(m, b), notes=notes(m, b))
+                        for s, x, img, ref, b in zip(seq.shots, renders, r["images"], refs, frames)]
                 for rec, img, ref, s in zip(recs, r["images"], refs, seq.shots):
                     rec["reference_image"] = store.add(f"ref:{rec['sequence']}/{s.name}", ref)
                     rec["image_id"] = store.add(f"{rec['file']}|{name}", img)
@@ -356,19 +360,32 @@ def summarize(records: list[dict]) -> list[dict]:
             "rss_peak_mb": rss_peak[method] / 2**20 if method in rss_peak else None,
             "xla_mb": max(xla) / 2**20 if xla else None,
             "render_seconds": float(np.median(render)) if all(x is not None for x in render) else None,
+            "buffers": sorted({b for r in rs for b in r.get("buffers", [])}),
+            "notes": _row_notes(rs),
         })
     return rows
 
 
+def _row_notes(rs: list[dict]) -> list[str]:
+    """Each distinct remark of a row's records, with how many of its frames it concerns (a row can
+    mix frames that had an optional buffer with frames that had not)."""
+    counts: dict[str, int] = {}
+    for r in rs:
+        for n in r.get("notes", []):
+            counts[n] = counts.get(n, 0) + 1
+    return [f"{n} ({k} of {len(rs)} frame(s))" for n, k in counts.items()]
+
+
 def markdown_table(rows: list[dict]) -> str:
     lines = ["| method | spp | frames | RelMSE | SSIM | PSNR (dB) | time (ms, median) | compile (s) "
-             "| RSS peak MB | XLA MB |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "| RSS peak MB | XLA MB | notes |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     fmt = lambda v, f, scale=1.0: "-" if v is None else format(scale * v, f)
     for r in rows:
         lines.append(f"| {r['method']} | {r['spp'] if r['spp'] is not None else '?'} | {r['frames']} | "
                      f"{r['relmse']:.4g} | {r['ssim']:.4f} | {r['psnr']:.2f} | {fmt(r['seconds'], '.2f', 1e3)} | "
-                     f"{fmt(r['compile_seconds'], '.2f')} | {fmt(r['rss_peak_mb'], '.1f')} | {fmt(r.get('xla_mb'), '.1f')} |")
+                     f"{fmt(r['compile_seconds'], '.2f')} | {fmt(r['rss_peak_mb'], '.1f')} | {fmt(r.get('xla_mb'), '.1f')} | "
+                     f"{'; '.join(r.get('notes', []))} |")
     return "\n".join(lines)
 
 

@@ -12,6 +12,7 @@ from typing import Any, Iterable, Mapping
 
 import jax
 import numpy as np
+from .errors import JaxdenoiseError
 
 # field -> EXR channel names, in order (DESIGN.md "One EXR per frame"). Feature variances are one
 # channel per layer (the mean of the per-channel variances of the pixel mean).
@@ -46,7 +47,7 @@ MATRIX_FIELDS: tuple[str, ...] = ("world_to_camera", "world_to_ndc")
 ALL_FIELDS: tuple[str, ...] = IMAGE_FIELDS + METADATA_FIELDS
 
 
-class BuffersError(ValueError):
+class BuffersError(JaxdenoiseError):
     """A `Buffers` is malformed or lacks what a method needs."""
 
 

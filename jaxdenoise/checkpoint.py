@@ -22,12 +22,13 @@ from typing import Any
 import numpy as np
 
 from .fsutil import atomic_path, write_json
+from .errors import JaxdenoiseError
 
 PARAMS_FILE = "params.npz"
 CONFIG_FILE = "config.json"
 
 
-class WeightsError(ValueError):
+class WeightsError(JaxdenoiseError):
     """A weights folder or checkpoint that cannot be used (the message names the folder and why)."""
 
 
@@ -94,7 +95,7 @@ def config_from_dict(cls: type, data: dict) -> Any:
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(data) - names)
     if unknown:
-        raise ValueError(f"config for {cls.__module__}.{cls.__name__} has unknown key(s) {unknown}")
+        raise JaxdenoiseError(f"config for {cls.__module__}.{cls.__name__} has unknown key(s) {unknown}")
     return cls(**{k: (tuple(_tuples(v)) if isinstance(v, list) else v) for k, v in data.items()})
 
 

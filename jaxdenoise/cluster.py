@@ -8,6 +8,7 @@ use more than N cores; any other value is the address of a running scheduler (``
 from __future__ import annotations
 
 import os
+from .errors import JaxdenoiseError, MissingDependency
 
 __all__ = ["connect", "distributed_module", "EXTRA_HINT"]
 
@@ -21,7 +22,7 @@ def distributed_module():
     try:
         import distributed
     except ImportError as e:
-        raise ImportError(f"--scheduler needs Dask, which is not installed ({e}); install the cluster extra: "
+        raise MissingDependency(f"--scheduler needs Dask, which is not installed ({e}); install the cluster extra: "
                           f"{EXTRA_HINT}") from None
     return distributed
 
@@ -34,9 +35,9 @@ def connect(spec: str):
         try:
             workers = int(n) if n else (os.cpu_count() or 1)
         except ValueError:
-            raise ValueError(f"--scheduler {spec!r}: expected local or local:N with N an integer") from None
+            raise JaxdenoiseError(f"--scheduler {spec!r}: expected local or local:N with N an integer") from None
         if workers < 1:
-            raise ValueError(f"--scheduler {spec!r}: N must be >= 1")
+            raise JaxdenoiseError(f"--scheduler {spec!r}: N must be >= 1")
         cluster = distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                            dashboard_address=None, silence_logs=40, env=dict(_WORKER_ENV))
         return distributed.Client(cluster), cluster

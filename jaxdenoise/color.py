@@ -20,6 +20,7 @@ import dataclasses
 from typing import Any, Callable
 
 import jax.numpy as jnp
+from .errors import JaxdenoiseError
 
 # Default mu of the mu-law compressor: Guo et al. 2019, Sec. 4.2, "we empirically set mu = 16".
 MU_DEFAULT = 16.0
@@ -91,7 +92,7 @@ def inv_log_transform(y: Any) -> jnp.ndarray:
 def mu_law(x: Any, mu: float = MU_DEFAULT) -> jnp.ndarray:
     """mu-law range compression, Guo et al. 2019 Eq. 6: ``T(I) = sign(I) log(1 + mu |I|) / log(1 + mu)``."""
     if not mu > 0:
-        raise ValueError(f"mu_law: 'mu' must be > 0, got {mu}")
+        raise JaxdenoiseError(f"mu_law: 'mu' must be > 0, got {mu}")
     scale = 1.0 / jnp.log1p(mu)
     return _odd(lambda a: jnp.log1p(mu * a) * scale, _float(x))
 
@@ -99,7 +100,7 @@ def mu_law(x: Any, mu: float = MU_DEFAULT) -> jnp.ndarray:
 def inv_mu_law(y: Any, mu: float = MU_DEFAULT) -> jnp.ndarray:
     """Inverse of `mu_law` (Eq. 6 solved for I): ``sign(y) ((1 + mu) ** |y| - 1) / mu``."""
     if not mu > 0:
-        raise ValueError(f"inv_mu_law: 'mu' must be > 0, got {mu}")
+        raise JaxdenoiseError(f"inv_mu_law: 'mu' must be > 0, got {mu}")
     lg = jnp.log1p(mu)
     return _odd(lambda a: jnp.expm1(a * lg) / mu, _float(y))
 
@@ -130,7 +131,7 @@ def demodulate(color: Any, albedo: Any, eps: float = ALBEDO_EPS_DEFAULT) -> jnp.
     in at least float32 (see the comment in ``_demod_dtype``).
     """
     if not eps > 0:
-        raise ValueError(f"demodulate: 'eps' must be > 0 (it guards zero albedo), got {eps}")
+        raise JaxdenoiseError(f"demodulate: 'eps' must be > 0 (it guards zero albedo), got {eps}")
     color, albedo = _float(color), _float(albedo)
     dt = _demod_dtype(color, albedo)
     # Negative albedo is not physical; clamping at 0 keeps the denominator >= eps > 0.
@@ -140,7 +141,7 @@ def demodulate(color: Any, albedo: Any, eps: float = ALBEDO_EPS_DEFAULT) -> jnp.
 def remodulate(illum: Any, albedo: Any, eps: float = ALBEDO_EPS_DEFAULT) -> jnp.ndarray:
     """Inverse of `demodulate`: ``illum * (albedo + eps)``."""
     if not eps > 0:
-        raise ValueError(f"remodulate: 'eps' must be > 0 (it must match demodulate's), got {eps}")
+        raise JaxdenoiseError(f"remodulate: 'eps' must be > 0 (it must match demodulate's), got {eps}")
     illum, albedo = _float(illum), _float(albedo)
     dt = _demod_dtype(illum, albedo)
     return illum.astype(dt) * (jnp.maximum(albedo.astype(dt), 0.0) + eps)
@@ -176,7 +177,7 @@ def transfer(name: str) -> Transfer:
     try:
         return TRANSFERS[name]
     except KeyError:
-        raise ValueError(f"unknown transfer '{name}'; known: {', '.join(TRANSFERS)}") from None
+        raise JaxdenoiseError(f"unknown transfer '{name}'; known: {', '.join(TRANSFERS)}") from None
 
 
 __all__ = [

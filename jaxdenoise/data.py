@@ -21,6 +21,7 @@ import json
 import os
 import re
 from pathlib import Path
+from .errors import JaxdenoiseError
 
 __all__ = ["REFERENCE", "SHOT_RECORD", "Render", "Shot", "Sequence", "discover", "sequences", "renders_by_spp"]
 
@@ -77,7 +78,7 @@ def _timings(manifest: Path) -> dict[str, float | None]:
         files = json.loads(manifest.read_text()).get("files", {})
         return {k: v.get("seconds") for k, v in files.items() if isinstance(v, dict)}
     except (json.JSONDecodeError, AttributeError) as e:
-        raise ValueError(f"{manifest}: not a valid shot record ({e})") from None
+        raise JaxdenoiseError(f"{manifest}: not a valid shot record ({e})") from None
 
 
 def discover(data_dir: str | os.PathLike) -> list[Shot]:
@@ -119,7 +120,7 @@ def sequences(shots: list[Shot]) -> tuple[list[Sequence], list[Shot]]:
         members.sort(key=lambda s: s.frame)
         idx = [s.frame for s in members]
         if idx != list(range(idx[0], idx[0] + len(idx))):
-            raise ValueError(f"{parent}: sequence frames {idx} are not consecutive")
+            raise JaxdenoiseError(f"{parent}: sequence frames {idx} are not consecutive")
         seqs.append(Sequence(parent, tuple(members)))
     return seqs, singles
 
@@ -130,7 +131,7 @@ def renders_by_spp(shot: Shot, spps=None) -> dict[int, list[Render]]:
     out: dict[int, list[Render]] = {}
     for r in shot.renders:
         if r.spp is None:
-            raise ValueError(f"{r.path}: no integer 'spp' header attribute; cannot tell its sample count")
+            raise JaxdenoiseError(f"{r.path}: no integer 'spp' header attribute; cannot tell its sample count")
         if spps is None or r.spp in spps:
             out.setdefault(int(r.spp), []).append(r)
     return out

@@ -22,6 +22,7 @@ import OpenImageIO as oiio
 
 from .buffers import CHANNELS, IMAGE_FIELDS, Buffers, BuffersError
 from .fsutil import atomic_path
+from .errors import JaxdenoiseError
 
 __all__ = [
     "ExrError", "REPAIR_POLICY", "read_buffers", "read_image", "read_sequence", "write_buffers",
@@ -40,7 +41,7 @@ _HOUSEKEEPING_PREFIXES = ("oiio:", "openexr:", "compression", "PixelAspectRatio"
                           "DateTime", "Software")
 
 
-class ExrError(ValueError):
+class ExrError(JaxdenoiseError):
     """A file is not a valid frame under the EXR contract (the message names file and channel)."""
 
 
@@ -170,7 +171,7 @@ def read_buffers(path: str | os.PathLike, *, repair: str | None = None,
     ``attrs['ignored_channels']``.
     """
     if repair not in (None, "zero"):
-        raise ValueError(f"repair={repair!r}; expected None or 'zero'")
+        raise JaxdenoiseError(f"repair={repair!r}; expected None or 'zero'")
     path = Path(path)
     chans, attrs = _read_pixels(path)
     fields: dict[str, Any] = {}

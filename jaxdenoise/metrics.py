@@ -30,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdenoise.color import tonemap
+from .errors import JaxdenoiseError
 
 RELMSE_EPS = 0.01  # Kalantari et al. 2015, Eq. 8: "0.01 in our implementation"
 SSIM_SIGMA = 1.5  # Wang et al. 2004, Sec. III-C: 11x11 circular-symmetric Gaussian, sigma 1.5
@@ -53,9 +54,9 @@ def _pair(fn: str, x: Any, ref: Any, *, min_ndim: int = 3, layout: str = "(..., 
     ref = _as_float("ref", fn, ref)
     for name, a in (("x", x), ("ref", ref)):
         if a.ndim < min_ndim:
-            raise ValueError(f"{fn}: '{name}' has shape {tuple(a.shape)}; expected {layout}")
+            raise JaxdenoiseError(f"{fn}: '{name}' has shape {tuple(a.shape)}; expected {layout}")
     if x.shape != ref.shape:
-        raise ValueError(f"{fn}: 'x' has shape {tuple(x.shape)} but 'ref' has shape {tuple(ref.shape)}; "
+        raise JaxdenoiseError(f"{fn}: 'x' has shape {tuple(x.shape)} but 'ref' has shape {tuple(ref.shape)}; "
                          "they must match")
     dt = jnp.promote_types(x.dtype, ref.dtype)
     return x.astype(dt), ref.astype(dt)
@@ -63,7 +64,7 @@ def _pair(fn: str, x: Any, ref: Any, *, min_ndim: int = 3, layout: str = "(..., 
 
 def _check_eps(fn: str, eps: Any) -> None:
     if isinstance(eps, (int, float)) and not eps > 0:
-        raise ValueError(f"{fn}: 'eps' must be > 0 (it guards division by a zero reference), got {eps}")
+        raise JaxdenoiseError(f"{fn}: 'eps' must be > 0 (it guards division by a zero reference), got {eps}")
 
 
 # -- RelMSE / MSE ----------------------------------------------------------------------------------
@@ -168,7 +169,7 @@ def _ssim_check(fn: str, x: Any, ref: Any):
     x, ref = _pair(fn, x, ref)
     h, w = x.shape[-3], x.shape[-2]
     if h < SSIM_WIN or w < SSIM_WIN:
-        raise ValueError(f"{fn}: images are {h}x{w} pixels (H x W); SSIM's {SSIM_WIN}x{SSIM_WIN} Gaussian "
+        raise JaxdenoiseError(f"{fn}: images are {h}x{w} pixels (H x W); SSIM's {SSIM_WIN}x{SSIM_WIN} Gaussian "
                          f"window (sigma {SSIM_SIGMA}) needs at least {SSIM_WIN}x{SSIM_WIN}")
     return x, ref
 
@@ -200,7 +201,7 @@ def _temporal_check(fn: str, frames: Any, refs: Any, eps: Any):
     _check_eps(fn, eps)
     frames, refs = _pair(fn, frames, refs, min_ndim=4, layout="(..., T, H, W, C) with T >= 2 frames")
     if frames.shape[-4] < 2:
-        raise ValueError(f"{fn}: 'frames' has {frames.shape[-4]} frame(s) on the time axis (axis -4 of "
+        raise JaxdenoiseError(f"{fn}: 'frames' has {frames.shape[-4]} frame(s) on the time axis (axis -4 of "
                          f"shape {tuple(frames.shape)}); a temporal error needs T >= 2")
     return frames, refs
 

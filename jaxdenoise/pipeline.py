@@ -40,7 +40,6 @@ out (``leave_out``: GradNet's loss has no reference).
 from __future__ import annotations
 
 import copy
-import dataclasses
 import hashlib
 import json
 import os
@@ -51,6 +50,7 @@ import numpy as np
 
 from .buffers import CHANNELS, IMAGE_FIELDS, MATRIX_FIELDS
 from .fsutil import atomic_path, write_json
+from .errors import JaxdenoiseError
 
 __all__ = ["build_cache", "Cache", "ExportedCache", "load_export", "open_training_data", "default_cache_dir", "augment", "rotate90", "flip_lr",
            "RADIANCE", "BOUNDED"]
@@ -108,7 +108,7 @@ def rotate90(fields: dict[str, np.ndarray], k: int = 1) -> dict[str, np.ndarray]
             dy[..., :-1, :, :] = -rdx[..., 1:, :, :]
             rot["dx"], rot["dy"] = rot["dy"], dy
         elif "dx" in out or "dy" in out:
-            raise ValueError("rotate90: dx and dy must come together (a rotation mixes them)")
+            raise JaxdenoiseError("rotate90: dx and dy must come together (a rotation mixes them)")
         out = rot
     return {f: np.ascontiguousarray(v) for f, v in out.items()}
 
@@ -154,14 +154,6 @@ def augment(item: dict[str, np.ndarray], rng: np.random.Generator, *, rotate: bo
 
 # -- the cache -------------------------------------------------------------------------------------
 
-@dataclasses.dataclass(frozen=True)
-class _Frame:
-    array: str  # file name of the render's stacked channels
-    reference: str  # file name of the reference
-    spp: int
-    shot: str  # shot name (sequence frames: "<sequence>/frame_XXXX")
-
-
 def _key(fields: Sequence[str], files: list[Path]) -> str:
     h = hashlib.sha256(json.dumps({"v": CACHE_VERSION, "fields": list(fields)}).encode())
     for p in files:
@@ -188,7 +180,7 @@ def build_cache(data_dir: str | os.PathLike, fields: Sequence[str], cache_dir: s
     fields = ["color"] + [f for f in fields if f != "color"]
     unknown = [f for f in fields if f not in CHANNELS]
     if unknown:
-        raise ValueError(f"build_cache: unknown buffer name(s) {unknown}; known: {list(CHANNELS)}")
+        raise JaxdenoiseError(f"build_cache: unknown buffer name(s) {unknown}; known: {list(CHANNELS)}")
     shots = discover(data_dir)
     seqs, singles = sequences(shots)
     wanted = None if spps is None else {int(s) for s in spps}
@@ -219,9 +211,9 @@ def build_cache(data_dir: str | os.PathLike, fields: Sequence[str], cache_dir: s
             b = b.replace(**{f: np.full(b.shape + (len(CHANNELS[f]),), fill[f], np.float32) for f in filled})
         missing = [f for f in fields if getattr(b, f) is None]
         if missing:
-            raise ValueError(f"{r.path}: lacks buffer(s) {missing} that the cache was asked for")
+            raise JaxdenoiseError(f"{r.path}: lacks buffer(s) {missing} that the cache was asked for")
         if r.spp is None:
-            raise ValueError(f"{r.path}: no integer 'spp' header attribute")
+            raise JaxdenoiseError(f"{r.path}: no integer 'spp' header attribute")
         name = f"frame_{len(frames):06d}.npy"
         _save_npy(folder / name, np.concatenate([np.asarray(getattr(b, f), np.float32) for f in fields], -1))
         label = f"{shot.folder.parent.name}/{shot.name}" if shot.frame is not None else shot.name
@@ -253,7 +245,7 @@ def _sample_sequences(videos: list[dict], item, shape, n: int, size: int, rng: n
     cropped render, ``shape(key)`` its size."""
     videos = [v for v in videos if len(v) >= frames]
     if not videos:
-        raise ValueError(f"{where}: no sequence with {frames} frames")
+        raise JaxdenoiseError(f"{where}: no sequence with {frames} frames")
     aug = {"reverse": True, **aug}
     items = []
     for _ in range(int(n)):
@@ -329,7 +321,7 @@ class Cache:
         "reference": ..., "spp": (n,)}``."""
         pool = [i for i, f in enumerate(self.frames) if spps is None or f["spp"] in set(spps)]
         if not pool:
-            raise ValueError(f"{self.folder}: no cached render" + (f" at spp {list(spps)}" if spps else ""))
+            raise JaxdenoiseError(f"{self.folder}: no cached render" + (f" at spp {list(spps)}" if spps else ""))
         items = []
         for _ in range(int(n)):
             i = pool[int(rng.integers(0, len(pool)))]
@@ -364,7 +356,7 @@ class Cache:
                     keep.append(i)
             pool = keep
         if not pool:
-            raise ValueError(f"{self.folder}: no cached render" + (f" at spp {list(spps)}" if spps else ""))
+            raise JaxdenoiseError(f"{self.folder}: no cached render" + (f" at spp {list(spps)}" if spps else ""))
         return pool
 
     def whole(self, spps: Sequence[int] | None = None, instances: int | None = None) -> dict[str, np.ndarray]:
@@ -375,7 +367,7 @@ class Cache:
         pool = self._pool(spps, instances)
         sizes = {self.array(self.frames[i]["array"]).shape[:2] for i in pool}
         if len(sizes) != 1:
-            raise ValueError(f"{self.folder}: renders of several sizes {sorted(sizes)}; whole frames need one")
+            raise JaxdenoiseError(f"{self.folder}: renders of several sizes {sorted(sizes)}; whole frames need one")
         (h, w), = sizes
         out = _stack([self._item(i, 0, 0, max(h, w)) for i in pool])
         names = sorted({self.frames[i]["sequence"] for i in pool if self.frames[i].get("sequence") is not None})
@@ -399,10 +391,10 @@ class Cache:
         leave_out = set(leave_out)
         unknown = sorted(leave_out - {*self.fields, "reference"})
         if unknown:
-            raise ValueError(f"export: leave_out names {unknown}, which are not fields of {self.folder} "
+            raise JaxdenoiseError(f"export: leave_out names {unknown}, which are not fields of {self.folder} "
                              f"(it holds {['color', *self.fields, 'reference']})")
         if "color" in leave_out:
-            raise ValueError("export: leave_out cannot hold 'color' (every method reads it)")
+            raise JaxdenoiseError("export: leave_out cannot hold 'color' (every method reads it)")
         if whole:
             every = self.whole(spps, instances)
             size = int(every["color"].shape[1])
@@ -420,7 +412,7 @@ class Cache:
         fit = int(max_mib * 2**20 // max(per_item, 1))
         count = min(int(n), fit)
         if count < 1:
-            raise ValueError(f"export: one item takes {per_item / 2**20:.1f} MiB, more than max_mib={max_mib}")
+            raise JaxdenoiseError(f"export: one item takes {per_item / 2**20:.1f} MiB, more than max_mib={max_mib}")
         enc = _encode(draw(count))
         summary = {"count": count, "requested": int(n), "fit": fit, "per_item_bytes": per_item, "size": size,
                    "frames": frames, "fields": self.fields, "max_mib": max_mib, "whole": bool(whole),
@@ -511,7 +503,7 @@ class ExportedCache:
     def render(self, i: int) -> dict[str, np.ndarray]:
         """Item ``i`` whole and unaugmented (as `Cache.render`; an export of crops gives the crop)."""
         if self.summary.get("frames"):
-            raise ValueError(f"{self.path}: holds sequence crops; render() needs single frames")
+            raise JaxdenoiseError(f"{self.path}: holds sequence crops; render() needs single frames")
         h, w = self._shape(i)
         return self._item(i, 0, 0, max(h, w))
 
@@ -545,10 +537,10 @@ class ExportedCache:
         """As `Cache.crops`: ``n`` random ``size x size`` windows of random exported items (at
         ``spps`` if given), augmented; the same call on a cache or on its export."""
         if self.summary.get("frames"):
-            raise ValueError(f"{self.path}: holds sequence crops; crops() needs single frames")
+            raise JaxdenoiseError(f"{self.path}: holds sequence crops; crops() needs single frames")
         pool = np.arange(self.count) if spps is None else np.flatnonzero(np.isin(self.items["spp"], list(spps)))
         if pool.size == 0:
-            raise ValueError(f"{self.path}: no exported item" + (f" at spp {list(spps)}" if spps else ""))
+            raise JaxdenoiseError(f"{self.path}: no exported item" + (f" at spp {list(spps)}" if spps else ""))
         h, w = self.items["color"].shape[1:3]
         c = min(int(size), h, w)
         items = []
@@ -584,7 +576,7 @@ def open_training_data(source: str | os.PathLike, fields: Sequence[str], *, spps
         ex = load_export(source)
         missing = [f for f in ["color", *fields, *(["reference"] if reference else [])] if f not in ex.items]
         if missing:
-            raise ValueError(f"{source}: the export lacks {missing} (it holds {sorted(ex.items)})")
+            raise JaxdenoiseError(f"{source}: the export lacks {missing} (it holds {sorted(ex.items)})")
         return ex
     return build_cache(source, fields, cache_dir or default_cache_dir(), spps=spps, progress=progress, fill=fill,
                        repair=repair)

@@ -16,7 +16,7 @@
 Time and memory are O(T): no frame is denoised twice, nothing re-runs from frame 0, and the Python
 loop over frames stays outside ``jit`` (each per-frame function is compiled once per shape, so T is
 never unrolled into a program). Every frame is checked and reduced to what the method reads by
-`jaxdenoise.api.prepare` (frame metadata such as ``spp`` included), with its name in any error.
+`jaxdenoise.inference.prepare` (frame metadata such as ``spp`` included), with its name in any error.
 """
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ from typing import Any, Callable, Iterable, Iterator, Sequence
 import jax
 import numpy as np
 
-from .api import inference_fn, prepare
+from .inference import inference_fn, prepare
 from .buffers import Buffers, BuffersError
 from .methods import Method
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 from typing import Any
 
 import jax.numpy as jnp
+from .errors import JaxdenoiseError
 
 __all__ = ["to_camera", "view_normals", "linear_depth", "has_hit"]
 
@@ -30,7 +31,7 @@ def _matrix(m: Any, lead: tuple[int, ...]) -> jnp.ndarray:
     """``(4, 4)`` or one matrix per frame, broadcast to ``lead + (1, 1, 4, 4)`` against (..., H, W, C)."""
     m = jnp.asarray(m, jnp.float32)
     if m.shape[-2:] != (4, 4):
-        raise ValueError(f"camera matrix has shape {tuple(m.shape)}; expected (..., 4, 4)")
+        raise JaxdenoiseError(f"camera matrix has shape {tuple(m.shape)}; expected (..., 4, 4)")
     return m.reshape(m.shape[:-2] + (1, 1, 4, 4)) if m.ndim > 2 else m
 
 

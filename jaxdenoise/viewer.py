@@ -67,7 +67,7 @@ def write_viewer(report: dict, store: ImageStore, out_dir: str | os.PathLike, *,
                                           "sequence": r.get("sequence"), "frame": r.get("frame"),
                                           "reference": r.get("reference_image"), "methods": []})
         f["methods"].append({"method": r["method"], "image": r.get("image_id"), "relmse": r["relmse"],
-                             "ssim": r["ssim"], "seconds": r["seconds"]})
+                             "ssim": r["ssim"], "seconds": r["seconds"], "notes": r.get("notes", [])})
     for s in report.get("skipped", []):
         if "file" in s and s["file"] in frames:
             frames[s["file"]]["methods"].append({"method": s["method"], "image": None, "failed": s["reason"]})
@@ -107,6 +107,7 @@ select,input,button{font:inherit}
 .view canvas{position:absolute;left:0;top:0;transform-origin:0 0;image-rendering:pixelated}
 .cap{padding:3px 5px;white-space:nowrap;overflow:hidden;text-overflow:ellipsis}
 .failed{color:#f77;padding:8px;white-space:normal}
+.note{color:#e8b100;padding:0 5px 3px;white-space:normal}
 #legend{display:flex;align-items:center;gap:4px}
 #legend canvas{width:160px;height:12px}
 #legend[hidden]{display:none}
@@ -165,6 +166,7 @@ function panels(){
     cap.textContent=m.method+(m.relmse!==undefined?"  RelMSE "+fmt(m.relmse,4)+"  SSIM "+fmt(m.ssim,4)+"  "+
       (m.seconds===null||m.seconds===undefined?"- ms":(1e3*m.seconds).toFixed(1)+" ms"):"")+(t!==undefined&&t!==null?"  temporal "+fmt(t,3):"");
     cap.dataset.relmse=m.relmse===undefined?"":m.relmse; d.appendChild(cap);
+    if(m.notes&&m.notes.length){ var nt=document.createElement("div"); nt.className="note"; nt.textContent="note: "+m.notes.join("; "); d.appendChild(nt); }
     if(m.failed){ var fl=document.createElement("div"); fl.className="failed"; fl.textContent="failed: "+m.failed; d.appendChild(fl); }
     else { var v=document.createElement("div"); v.className="view"; var c=document.createElement("canvas"); v.appendChild(c); d.appendChild(v);
       var img=decode(m.image); if(img){ draw(c,img,m.method==="reference"?null:ref); } }

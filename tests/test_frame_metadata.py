@@ -18,7 +18,7 @@ import pytest
 
 import jaxdenoise as jd
 from jaxdenoise import bench, checkpoint, metrics
-from jaxdenoise.api import prepare
+from jaxdenoise.inference import prepare
 from jaxdenoise.buffers import BuffersError, map_frames, stack
 from jaxdenoise.cli import main
 from jaxdenoise.io import read_buffers, read_image

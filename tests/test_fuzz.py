@@ -1,4 +1,4 @@
-"""Seeded mutation fuzzing of every reader (jaxdenoise._fuzz): each outcome is a success or the
+"""Seeded mutation fuzzing of every reader (jaxdenoise.fuzz): each outcome is a success or the
 project's own error naming the file; never another exception, a traceback on the CLI, a crash of
 the process or a hang. A quick run in the default suite; thousands of cases under `slow`."""
 from __future__ import annotations
@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from jaxdenoise import _fuzz
+from jaxdenoise import fuzz
 
 from conftest import synthetic_frame
 
@@ -40,16 +40,16 @@ def _check(results):
 
 
 def test_mutated_files_give_named_errors_only(tmp_path):
-    cases = _fuzz.make_cases(_sources(tmp_path), tmp_path / "cases", n_per_kind=1, seed=20261127)
-    _check(_fuzz.run_cases(cases, timeout=120))
+    cases = fuzz.make_cases(_sources(tmp_path), tmp_path / "cases", n_per_kind=1, seed=20261127)
+    _check(fuzz.run_cases(cases, timeout=120))
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_thousands_of_mutations(tmp_path, seed):
-    cases = _fuzz.make_cases(_sources(tmp_path), tmp_path / "cases", n_per_kind=12, seed=seed)
+    cases = fuzz.make_cases(_sources(tmp_path), tmp_path / "cases", n_per_kind=12, seed=seed)
     assert len(cases) >= 1000
-    _check(_fuzz.run_cases(cases, timeout=120))
+    _check(fuzz.run_cases(cases, timeout=120))
 
 
 def test_mutations_are_what_they_say(tmp_path):
@@ -59,10 +59,10 @@ def test_mutations_are_what_they_say(tmp_path):
 
     data = write_buffers(tmp_path / "f.exr", synthetic_frame(8, 8)).read_bytes()
     rng = np.random.default_rng(0)
-    h = _fuzz.header_end(data)
+    h = fuzz.header_end(data)
     assert data[:4] == b"\x76\x2f\x31\x01" and 8 < h < len(data)  # EXR magic; header inside the file
-    flipped = _fuzz.mutate(data, "pixel_flip", rng)
+    flipped = fuzz.mutate(data, "pixel_flip", rng)
     assert flipped[:h] == data[:h] and flipped != data  # pixel flips leave the header alone
-    assert len(_fuzz.mutate(data, "truncate", rng)) < len(data)
-    big = _fuzz.mutate(data, "oversized", rng)
+    assert len(fuzz.mutate(data, "truncate", rng)) < len(data)
+    big = fuzz.mutate(data, "oversized", rng)
     assert b"\x3f\x42\x0f\x00" in big  # 999999 as int32 in the data window

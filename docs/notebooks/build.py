@@ -4,9 +4,10 @@
     python docs/notebooks/build.py quickstart # one of them
 
 Each notebook is executed top to bottom with nbclient in a fresh kernel and saved with its outputs
-and, in its metadata, the jaxdenoise version it ran with (``metadata.jaxdenoise.version``);
-tests/test_notebooks.py checks that every committed notebook has outputs, no error and the current
-version, and (slow) executes them again.
+and, in its metadata, the jaxdenoise version it ran with and a digest of the sources it ran
+(``metadata.jaxdenoise.sources_sha256``, `sources_sha256`); tests/test_notebooks.py checks that every
+committed notebook has outputs, no error and the current digest (so any change to the library, data_gen
+or the shipped weights means rebuilding them), and (slow) executes them again.
 """
 from __future__ import annotations
 
@@ -182,6 +183,21 @@ print(f"leaving out what gaussian does not need saves {100 * (1 - timings['gauss
 }
 
 
+def sources_sha256() -> str:
+    """A digest of what the notebooks run: every Python source of jaxdenoise and data_gen, and the
+    shipped weights and scenes (paths and bytes, in path order). A notebook executed before any of
+    them changed is stale (tests/test_notebooks.py)."""
+    import hashlib
+
+    root = HERE.parents[1]
+    files = [p for pkg in ("jaxdenoise", "data_gen") for p in (root / pkg).rglob("*")
+             if p.is_file() and p.suffix in (".py", ".npz", ".json", ".xml", ".exr")]
+    h = hashlib.sha256()
+    for p in sorted(files, key=lambda q: q.relative_to(root).as_posix()):
+        h.update(p.relative_to(root).as_posix().encode() + b"\0" + p.read_bytes() + b"\0")
+    return h.hexdigest()
+
+
 def build(name: str) -> Path:
     import nbformat
     from nbclient import NotebookClient
@@ -194,7 +210,8 @@ def build(name: str) -> Path:
     nb.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
     t0 = time.perf_counter()
     NotebookClient(nb, timeout=900, kernel_name="python3", resources={"metadata": {"path": str(HERE)}}).execute()
-    nb.metadata["jaxdenoise"] = {"version": jaxdenoise.__version__, "executed_seconds": round(time.perf_counter() - t0, 1)}
+    nb.metadata["jaxdenoise"] = {"version": jaxdenoise.__version__, "sources_sha256": sources_sha256(),
+                                 "executed_seconds": round(time.perf_counter() - t0, 1)}
     path = HERE / f"{name}.ipynb"
     tmp = path.with_name(f".{path.name}.tmp")
     nbformat.write(nb, tmp)

@@ -14,9 +14,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..arrays import is_concrete
+from ..errors import JaxdenoiseError
 
 
-class FilterError(ValueError):
+class FilterError(JaxdenoiseError):
     """A filter was called with an argument of the wrong shape, dtype or value."""
 
 

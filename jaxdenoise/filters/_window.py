@@ -33,8 +33,8 @@ read outside pixels, so the output is identical and the work is smaller.
 
 Small blocks: block statistics over a tiny window (the ``3 x 3`` spike test, LBF's mean and median
 absolute deviation features) need every value of the block at once (a median has no running sum),
-so `edge_blocks` does materialize the ``(2r+1)^2`` neighbourhood of every pixel. It works in HWC
-(with any leading axes) and completes border blocks by edge replication (`pad_edge`), so every block
+so `jaxdenoise.arrays.edge_blocks` does materialize the ``(2r+1)^2`` neighbourhood of every pixel. It
+works in HWC (with any leading axes) and completes border blocks by edge replication (`pad_edge`), so every block
 has ``(2r+1)^2`` values. It is meant for radius 1 to 2, not for the filter windows above.
 """
 from __future__ import annotations
@@ -165,24 +165,3 @@ def window_sums(
 
     init = (jnp.zeros(v0.shape, v0.dtype), jnp.zeros((1, h, w), v0.dtype))
     return jax.lax.fori_loop(0, (2 * ry + 1) * nchunk, body, init)
-
-
-def pad_edge(x: jax.Array, r: int) -> jax.Array:
-    """Edge-replicate ``r`` pixels on the two spatial axes of an ``(..., H, W, C)`` array."""
-    pad = [(0, 0)] * (x.ndim - 3) + [(r, r), (r, r), (0, 0)]
-    return jnp.pad(x, pad, mode="edge")
-
-
-def edge_blocks(x: jax.Array, r: int, *, axis: int = -1) -> jax.Array:
-    """The ``(2r+1)^2`` values of the edge-padded ``(2r+1) x (2r+1)`` block around every pixel of an
-    ``(..., H, W, C)`` array, stacked on a new axis ``axis`` (``-1``: ``(..., H, W, C, (2r+1)^2)``;
-    ``0``: ``((2r+1)^2, ..., H, W, C)``).
-
-    Entry ``k = (dy + r) (2r+1) + (dx + r)`` holds the neighbour at offset ``(dy, dx)`` (row-major,
-    the centre pixel at ``k = 2r (r+1)``); outside pixels are edge-replicated (`pad_edge`). This
-    materializes the whole stack: for small blocks only (module docstring).
-    """
-    h, w = x.shape[-3], x.shape[-2]
-    p = pad_edge(x, r)
-    out = [p[..., dy:dy + h, dx:dx + w, :] for dy in range(2 * r + 1) for dx in range(2 * r + 1)]
-    return jnp.stack(out, axis=axis)

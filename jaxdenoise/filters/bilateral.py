@@ -80,7 +80,7 @@ def _drop_constant(raw_features: Sequence[Any], *lists: Sequence[Any]) -> tuple[
     return tuple([lst[k] for k in keep] for lst in lists)
 
 
-def _color_var(color_var: Any, col: Any, hw: tuple[int, int]) -> Any:
+def check_color_var(color_var: Any, col: Any, hw: tuple[int, int]) -> Any:
     """The colour variance as an image with 1 or C channels, checked to be >= 0 (when concrete)."""
     cvar = as_image(color_var, "color_var", hw=hw)
     if cvar.shape[-1] not in (1, col.shape[-1]):
@@ -90,11 +90,11 @@ def _color_var(color_var: Any, col: Any, hw: tuple[int, int]) -> Any:
     return cvar
 
 
-def _feature_inputs(features, feature_vars, lam_features, hw) -> tuple[list, list, list]:
+def feature_inputs(features, feature_vars, lam_features, hw) -> tuple[list, list, list]:
     """Check and convert the feature stacks of the 2-D cross filters; constant features are dropped."""
     _check_features(features, feature_vars, lam_features, hw)
     feats = [as_image(f, f"features[{k}]", hw=hw) for k, f in enumerate(features)]
-    fvars = [_var_map(v, f"feature_vars[{k}]", hw) for k, v in enumerate(feature_vars)]
+    fvars = [var_map(v, f"feature_vars[{k}]", hw) for k, v in enumerate(feature_vars)]
     lams_f = [as_param(l, f"lam_features[{k}]", hw) for k, l in enumerate(lam_features)]
     return _drop_constant(features, feats, fvars, lams_f)
 
@@ -130,7 +130,7 @@ def _as_volume(x, name, t, hw, channels=None):
     return a
 
 
-def _var_map(v, name, hw, lead=()):
+def var_map(v, name, hw, lead=()):
     """A feature variance as (..., H, W, 1); accepts (..., H, W) too; None means 0."""
     if v is None:
         return None
@@ -150,7 +150,7 @@ def _var_map(v, name, hw, lead=()):
     return jnp.asarray(v)
 
 
-def _cross_sums(centre: dict, frames: list[dict], lam: dict, *, radius: int, dt_weights: list[Any]):
+def cross_sums(centre: dict, frames: list[dict], lam: dict, *, radius: int, dt_weights: list[Any]):
     """Sum the window sums of Eq. 1 over neighbour frames (one frame for the 2-D filters).
 
     ``centre``: the centre pixel's arrays: ``color``, optional ``color_var``, ``feat{k}`` and the
@@ -187,7 +187,7 @@ def _cross_sums(centre: dict, frames: list[dict], lam: dict, *, radius: int, dt_
     return num, den
 
 
-def _prepare(color, color_var, features, feature_vars, lam_spatial, lam_color, lam_features, hw, dt):
+def prepare_window(color, color_var, features, feature_vars, lam_spatial, lam_color, lam_features, hw, dt):
     """Cast to ``dt``, go planar, and build the centre dict and lam dict shared by the 2-D and 3-D filters."""
     centre = {"color": to_planar(color.astype(dt))}
     lam = {"spatial": to_planar(lam_spatial.astype(dt))}
@@ -210,20 +210,20 @@ def cross_bilateral(color, color_var, features: Sequence[Any], feature_vars: Seq
     hw = col.shape[:2]
     cvar = None
     if color_var is not None:
-        cvar = _color_var(color_var, col, hw)
-    feats, fvars, lams_f = _feature_inputs(features, feature_vars, lam_features, hw)
+        cvar = check_color_var(color_var, col, hw)
+    feats, fvars, lams_f = feature_inputs(features, feature_vars, lam_features, hw)
     lam_s = as_param(lam_spatial, "lam_spatial", hw)
     lam_c = None if cvar is None else as_param(lam_color, "lam_color", hw)
 
     out_dtype = col.dtype if jnp.issubdtype(col.dtype, jnp.floating) else jnp.float32
     dt = compute_dtype(col, lam_s, *feats, *lams_f, *([lam_c] if lam_c is not None else []))
-    centre, lam = _prepare(col, cvar, feats, fvars, lam_s, lam_c, lams_f, hw, dt)
+    centre, lam = prepare_window(col, cvar, feats, fvars, lam_s, lam_c, lams_f, hw, dt)
     frame = {"color": centre["color"]}
     if "color_var" in centre:
         frame["color_var"] = centre["color_var"]
     for k in range(len(feats)):
         frame[f"feat{k}"] = centre[f"feat{k}"]
-    num, den = _cross_sums(centre, [frame], lam, radius=radius, dt_weights=[None])
+    num, den = cross_sums(centre, [frame], lam, radius=radius, dt_weights=[None])
     return from_planar(num / den).astype(out_dtype)  # den >= 1: the centre weight is exactly 1
 
 
@@ -236,8 +236,8 @@ def bilateral(image, lam_spatial, lam_range, *, radius: int) -> jax.Array:
     lam_r = as_param(lam_range, "lam_range", hw)
     out_dtype = img.dtype if jnp.issubdtype(img.dtype, jnp.floating) else jnp.float32
     dt = compute_dtype(img, lam_s, lam_r)
-    centre, lam = _prepare(img, None, [], [], lam_s, lam_r, [], hw, dt)
-    num, den = _cross_sums(centre, [{"color": centre["color"]}], lam, radius=radius, dt_weights=[None])
+    centre, lam = prepare_window(img, None, [], [], lam_s, lam_r, [], hw, dt)
+    num, den = cross_sums(centre, [{"color": centre["color"]}], lam, radius=radius, dt_weights=[None])
     return from_planar(num / den).astype(out_dtype)  # den >= 1 (centre weight 1)
 
 
@@ -262,7 +262,7 @@ def spatiotemporal_cross_bilateral(color, color_var, features: Sequence[Any], fe
             raise FilterError(f"argument 'color_var' has {cvar.shape[-1]} channels; expected 1 or {c}")
     _check_features(features, feature_vars, lam_features, hw)
     feats = [_as_volume(f, f"features[{k}]", t, hw) for k, f in enumerate(features)]
-    fvars = [_var_map(v, f"feature_vars[{k}]", hw, lead=(t,)) for k, v in enumerate(feature_vars)]
+    fvars = [var_map(v, f"feature_vars[{k}]", hw, lead=(t,)) for k, v in enumerate(feature_vars)]
     lams_f = [as_param(l, f"lam_features[{k}]", hw) for k, l in enumerate(lam_features)]
     lam_s = as_param(lam_spatial, "lam_spatial", hw)
     lam_c = None if cvar is None else as_param(lam_color, "lam_color", hw)
@@ -271,7 +271,7 @@ def spatiotemporal_cross_bilateral(color, color_var, features: Sequence[Any], fe
 
     out_dtype = col.dtype if jnp.issubdtype(col.dtype, jnp.floating) else jnp.float32
     dt = compute_dtype(col, lam_s, lam_t, *feats, *lams_f)
-    centre, lam = _prepare(col[center], None if cvar is None else cvar[center], [f[center] for f in feats],
+    centre, lam = prepare_window(col[center], None if cvar is None else cvar[center], [f[center] for f in feats],
                            [None if v is None else v[center] for v in fvars], lam_s, lam_c, lams_f, hw, dt)
     frames, dts = [], []
     for s in range(t):
@@ -282,5 +282,5 @@ def spatiotemporal_cross_bilateral(color, color_var, features: Sequence[Any], fe
             fr[f"feat{k}"] = to_planar(f[s].astype(dt))
         frames.append(fr)
         dts.append(None if s == center else -to_planar(lam_t.astype(dt)) * float((s - center) ** 2))
-    num, den = _cross_sums(centre, frames, lam, radius=radius, dt_weights=dts)
+    num, den = cross_sums(centre, frames, lam, radius=radius, dt_weights=dts)
     return from_planar(num / den).astype(out_dtype)  # den >= 1: centre pixel of the centre frame has weight 1

@@ -31,7 +31,7 @@ import numpy as np
 from ..arrays import compute_dtype, is_concrete
 from ._common import FilterError, as_image, as_param, check_radius
 from ._window import from_planar, to_planar
-from .bilateral import _cross_sums, _prepare  # per-pixel sigma: the window engine
+from .bilateral import cross_sums, prepare_window  # per-pixel sigma: the window engine
 
 # Smallest sigma^2 used in the kernel exponent. Below it every off-centre weight underflows to
 # exactly 0 (d^2 >= 1), so clamping changes nothing but avoids 0/0 at sigma = 0.
@@ -83,8 +83,8 @@ def gaussian(image: Any, sigma: Any, *, radius: int | None = None) -> jax.Array:
         dt = compute_dtype(img, sig)
         # lambda = 1/(2 sigma^2); the floor keeps sigma = 0 finite (off-centre weights underflow to 0)
         lam = 0.5 / jnp.maximum(sig.astype(dt) ** 2, _MIN_SIGMA2)
-        centre, lams = _prepare(img, None, [], [], lam, None, [], img.shape[:2], dt)
-        num, den = _cross_sums(centre, [{"color": centre["color"]}], lams, radius=radius, dt_weights=[None])
+        centre, lams = prepare_window(img, None, [], [], lam, None, [], img.shape[:2], dt)
+        num, den = cross_sums(centre, [{"color": centre["color"]}], lams, radius=radius, dt_weights=[None])
         out_dtype = img.dtype if jnp.issubdtype(img.dtype, jnp.floating) else jnp.float32
         return from_planar(num / den).astype(out_dtype)  # den >= 1 (centre weight 1)
     out_dtype = img.dtype if jnp.issubdtype(img.dtype, jnp.floating) else jnp.float32

@@ -39,7 +39,7 @@ import jax.numpy as jnp
 from ..arrays import compute_dtype
 from ._common import FilterError, as_image, as_param, check_radius
 from ._window import Neighbours, channel_sum, channel_sum_sq, clamp_dist, from_planar, to_planar, window_sums
-from .bilateral import DELTA, ZETA, _color_var, _feature_inputs, _var_map
+from .bilateral import DELTA, ZETA, check_color_var, feature_inputs, var_map
 
 
 def _box(x: jax.Array, r: int, h: int, w: int) -> jax.Array:
@@ -110,8 +110,8 @@ def cross_nlm(color, color_var, features: Sequence[Any], feature_vars: Sequence[
     hw = col.shape[:2]
     if color_var is None:
         raise FilterError("argument 'color_var' is None; cross_nlm needs the colour variance (Eq. 17)")
-    cvar = _color_var(color_var, col, hw)
-    feats, fvars, lams_f = _feature_inputs(features, feature_vars, lam_features, hw)
+    cvar = check_color_var(color_var, col, hw)
+    feats, fvars, lams_f = feature_inputs(features, feature_vars, lam_features, hw)
     lam_p = as_param(lam_patch, "lam_patch", hw)
 
     out_dtype = col.dtype if jnp.issubdtype(col.dtype, jnp.floating) else jnp.float32
@@ -138,7 +138,7 @@ def prefilter_features(feature, feature_var, *, radius: int = 5, patch_radius: i
     hw = f.shape[:2]
     if feature_var is None:
         raise FilterError("argument 'feature_var' is None; the prefilter needs the feature's variance")
-    v = _var_map(feature_var, "feature_var", hw)
+    v = var_map(feature_var, "feature_var", hw)
     lam_p = as_param(lam, "lam", hw)
     out_dtype = f.dtype if jnp.issubdtype(f.dtype, jnp.floating) else jnp.float32
     dt = compute_dtype(f, v, lam_p)

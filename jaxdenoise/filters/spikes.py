@@ -22,9 +22,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..arrays import compute_dtype, is_concrete
+from ..arrays import compute_dtype, edge_blocks, is_concrete
 from ._common import FilterError, as_image, check_radius
-from ._window import edge_blocks
 
 
 def remove_spikes(image, *, n_std: float = 2.0, block_radius: int = 1) -> jax.Array:

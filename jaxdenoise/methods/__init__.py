@@ -19,6 +19,7 @@ from types import ModuleType
 from typing import Any, Callable
 
 from .protocol import Causal, Trainable, Windowed
+from ..errors import JaxdenoiseError
 
 # name -> (module, config overrides). Order is the order of tables and plots.
 _REGISTRY: dict[str, tuple[str, dict[str, Any]]] = {
@@ -39,7 +40,7 @@ _REGISTRY: dict[str, tuple[str, dict[str, Any]]] = {
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"
 
 
-class MethodError(ValueError):
+class MethodError(JaxdenoiseError):
     """Unknown method, unavailable method, or parameters that cannot be used."""
 
 

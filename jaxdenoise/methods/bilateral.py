@@ -27,6 +27,7 @@ from ..buffers import Buffers, BuffersError, map_frames, with_variances
 from .lbf_features import PAPER_FEATURES
 from ..filters import cross_bilateral, cross_nlm, remove_spikes
 from ..filters.nlm import prefilter_guides
+from ..errors import JaxdenoiseError
 
 
 
@@ -60,16 +61,16 @@ def _lam(sigma: float | None, name: str) -> float:
     if sigma is None:
         return 0.0
     if not (isinstance(sigma, (int, float)) and math.isfinite(sigma) and sigma > 0):
-        raise ValueError(f"bilateral: config.{name} is {sigma!r}; expected a finite number > 0 or None")
+        raise JaxdenoiseError(f"bilateral: config.{name} is {sigma!r}; expected a finite number > 0 or None")
     return 1.0 / (2.0 * float(sigma) ** 2)
 
 
 def _check_config(config: Config) -> None:
     if config.filter not in ("bilateral", "nlm"):
-        raise ValueError(f"bilateral: config.filter is {config.filter!r}; expected 'bilateral' or 'nlm'")
+        raise JaxdenoiseError(f"bilateral: config.filter is {config.filter!r}; expected 'bilateral' or 'nlm'")
     unknown = [f for f in config.features if f not in Buffers.__dataclass_fields__ or f.endswith("_var")]
     if unknown:
-        raise ValueError(f"bilateral: config.features has unknown feature buffer(s) {unknown}")
+        raise JaxdenoiseError(f"bilateral: config.features has unknown feature buffer(s) {unknown}")
 
 
 def needs(config: Config) -> frozenset[str]:
@@ -117,7 +118,7 @@ def lambdas(config: Config, present: tuple[str, ...] | None = None) -> dict:
     sig = config.feature_sigmas
     if sig is not None:
         if len(sig) != len(config.features):
-            raise ValueError(f"bilateral: config.feature_sigmas has {len(sig)} entries; expected one per "
+            raise JaxdenoiseError(f"bilateral: config.feature_sigmas has {len(sig)} entries; expected one per "
                              f"feature {config.features}")
         per = dict(zip(config.features, sig))
     elif config.sigma_feature is not None:

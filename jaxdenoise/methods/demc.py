@@ -43,6 +43,7 @@ import numpy as np
 from .. import nn
 from ..buffers import Buffers
 from ..nn.state import call
+from ..errors import JaxdenoiseError
 
 __all__ = ["Config", "needs", "init", "init_from_data", "apply", "forward", "loss", "make_dataset", "batch",
            "inputs", "num_params", "widths_of", "FEATURES", "TRAIN", "FROZEN", "WEIGHTS"]
@@ -84,14 +85,14 @@ def WEIGHTS(config: Config) -> str:
 
 def _check(config: Config) -> None:
     if config.variant not in VARIANTS:
-        raise ValueError(f"demc: config.variant is {config.variant!r}; expected one of {VARIANTS}")
+        raise JaxdenoiseError(f"demc: config.variant is {config.variant!r}; expected one of {VARIANTS}")
     if len(config.widths) != 5 or any(int(w) < 1 for w in config.widths):
-        raise ValueError(f"demc: config.widths must be five positive channel counts (five down-sampling "
+        raise JaxdenoiseError(f"demc: config.widths must be five positive channel counts (five down-sampling "
                          f"units, Sec. 3.2), got {config.widths}")
     if config.position_norm not in ("frame", "global"):
-        raise ValueError(f"demc: config.position_norm is {config.position_norm!r}; expected 'frame' or 'global'")
+        raise JaxdenoiseError(f"demc: config.position_norm is {config.position_norm!r}; expected 'frame' or 'global'")
     if not config.gamma > 0:
-        raise ValueError(f"demc: config.gamma must be > 0, got {config.gamma}")
+        raise JaxdenoiseError(f"demc: config.gamma must be > 0, got {config.gamma}")
 
 
 def needs(config: Config) -> frozenset[str]:

@@ -52,10 +52,11 @@ from .. import nn
 from ..buffers import Buffers
 from ..color import inv_log_transform, inv_mu_law, log_transform, mu_law
 from ..filters import gaussian
+from ..errors import JaxdenoiseError
 
 __all__ = ["Config", "needs", "init", "apply", "forward", "loss", "loss_terms", "make_dataset", "batch",
-           "param_groups", "group_train", "inputs", "predict", "g_branch", "features", "postprocess", "lambda_at", "first_order_weights",
-           "num_params", "is_illegal", "output_terms", "TRAIN", "WEIGHTS", "FEATURES"]
+           "param_groups", "group_train", "inputs", "predict", "g_branch", "features", "postprocess", "lambda_at",
+           "first_order_weights", "first_order_loss", "grad_loss", "num_params", "is_illegal", "output_terms", "TRAIN", "WEIGHTS", "FEATURES"]
 
 FEATURES: tuple[str, ...] = ("albedo", "normal", "depth")  # 3 + 3 + 1 = 7 channels (Sec. 4.3.3)
 N_FEAT = 7
@@ -99,14 +100,14 @@ class Config:
 
     def __post_init__(self) -> None:
         if len(self.widths) != 3 or any(int(w) < 1 for w in self.widths):
-            raise ValueError(f"gradnet: config.widths must be 3 positive ints (three stride-2 convs), got {self.widths}")
+            raise JaxdenoiseError(f"gradnet: config.widths must be 3 positive ints (three stride-2 convs), got {self.widths}")
         if int(self.head_width) < 0 or (self.head_width and not self.input_skip):
-            raise ValueError(f"gradnet: config.head_width must be >= 0 and needs input_skip, got {self.head_width}")
+            raise JaxdenoiseError(f"gradnet: config.head_width must be >= 0 and needs input_skip, got {self.head_width}")
         if self.compression not in ("mu-law", "log"):
-            raise ValueError(f"gradnet: config.compression must be 'mu-law' or 'log', got {self.compression!r}")
+            raise JaxdenoiseError(f"gradnet: config.compression must be 'mu-law' or 'log', got {self.compression!r}")
         for name in ("mu", "sigma_b2", "pp_sigma", "epoch_patches", "train_batch", "train_crop"):
             if not getattr(self, name) > 0:
-                raise ValueError(f"gradnet: config.{name} must be > 0, got {getattr(self, name)!r}")
+                raise JaxdenoiseError(f"gradnet: config.{name} must be > 0, got {getattr(self, name)!r}")
 
 
 def _epoch_steps(config: Config) -> int:
@@ -378,7 +379,7 @@ def first_order_weights(tb: jax.Array, config: Config) -> list[jax.Array]:
     return out
 
 
-def _first_order(t_img: jax.Array, G: jax.Array, feat: jax.Array, w: list[jax.Array]) -> jax.Array:
+def first_order_loss(t_img: jax.Array, G: jax.Array, feat: jax.Array, w: list[jax.Array]) -> jax.Array:
     """Eq. 10 / 11: ``1/(N |N_i|) sum_i sum_j w_ij |T_j - T_i - G_i^T (F_j - F_i)|_1`` over the pairs
     inside the image."""
     total, count = 0.0, 0
@@ -392,7 +393,7 @@ def _first_order(t_img: jax.Array, G: jax.Array, feat: jax.Array, w: list[jax.Ar
     return total / count
 
 
-def _grad_loss(out_hdr: jax.Array, x: dict, config: Config) -> jax.Array:
+def grad_loss(out_hdr: jax.Array, x: dict, config: Config) -> jax.Array:
     """Eq. 9: ``|T(grad_x I) - T(I_dx)| + |T(grad_y I) - T(I_dy)|`` per pixel (L1 over the colour
     channels), averaged; HDR forward differences, the last column / row (no neighbour) excluded."""
     gx = out_hdr[..., :, 1:, :] - out_hdr[..., :, :-1, :]
@@ -426,9 +427,9 @@ def output_terms(y: jax.Array, G: jax.Array, x: dict, config: Config) -> dict:
     w = first_order_weights(x["tb"], config)
     return {
         "data": jnp.abs(y - x["tb"]).sum(-1).mean(),
-        "grad": _grad_loss(to_hdr(y, config), x, config),
-        "first": _first_order(y, jax.lax.stop_gradient(G), x["feat"], w),
-        "g_branch": _first_order(x["tb"], G, x["feat"], w),
+        "grad": grad_loss(to_hdr(y, config), x, config),
+        "first": first_order_loss(y, jax.lax.stop_gradient(G), x["feat"], w),
+        "g_branch": first_order_loss(x["tb"], G, x["feat"], w),
     }
 
 
@@ -440,14 +441,14 @@ def loss(params: dict, batch: dict, config: Config, group: str | None = None):
     if group == "gbranch":
         xp, size = _padded(batch, config)
         x = inputs(batch, config)
-        return _first_order(x["tb"], _g_cropped(params, xp, size, config), x["feat"],
+        return first_order_loss(x["tb"], _g_cropped(params, xp, size, config), x["feat"],
                             first_order_weights(x["tb"], config))
     t = loss_terms(params, batch, config)
     l_all = t["grad"] + config.alpha * t["data"] + (lam * t["first"] if config.first_order else 0.0)
     if group == "autoencoder":
         return l_all
     if group is not None:
-        raise ValueError(f"gradnet: unknown parameter group {group!r}; expected 'autoencoder' or 'gbranch'")
+        raise JaxdenoiseError(f"gradnet: unknown parameter group {group!r}; expected 'autoencoder' or 'gbranch'")
     return l_all + t["g_branch"]
 
 
@@ -480,9 +481,9 @@ def make_dataset(data_dir, config: Config, *, progress: bool = True):
             if not is_illegal(r) and not (frames and frames[i].get("repaired")):
                 keep.append(i)
     if not pool:
-        raise ValueError(f"{data_dir}: no render at spp {list(config.train_spps)}")
+        raise JaxdenoiseError(f"{data_dir}: no render at spp {list(config.train_spps)}")
     if not keep:
-        raise ValueError(f"{data_dir}: every one of {len(pool)} renders at spp {list(config.train_spps)} has an "
+        raise JaxdenoiseError(f"{data_dir}: every one of {len(pool)} renders at spp {list(config.train_spps)} has an "
                          "illegal value (NaN/Inf or negative radiance)")
     out = ds.subset(keep)
     out.dropped = {"renders": len(pool), "dropped": len(pool) - len(keep)}

@@ -50,6 +50,7 @@ from ..buffers import Buffers, BuffersError, map_frames, with_variances
 from ..filters import cross_bilateral, cross_nlm, remove_spikes, spatiotemporal_cross_bilateral
 from ..filters.nlm import prefilter_guides
 from .lbf_features import CATEGORIES, PAPER_FEATURES, feature_categories, num_features, secondary_features
+from ..errors import JaxdenoiseError
 
 __all__ = ["Config", "needs", "window", "init", "apply", "prepare_frame", "apply_window", "postprocess", "loss",
            "prepare", "filter_params", "filter_with",
@@ -96,12 +97,12 @@ def WEIGHTS(config: Config) -> str:
 
 def _check_config(config: Config) -> None:
     if config.filter not in ("bilateral", "nlm"):
-        raise ValueError(f"lbf: config.filter is {config.filter!r}; expected 'bilateral' or 'nlm'")
+        raise JaxdenoiseError(f"lbf: config.filter is {config.filter!r}; expected 'bilateral' or 'nlm'")
     if not config.features:
-        raise ValueError("lbf: config.features must name at least one additional feature")
+        raise JaxdenoiseError("lbf: config.features must name at least one additional feature")
     bad = [c for c in config.drop_categories if c not in CATEGORIES]
     if bad:
-        raise ValueError(f"lbf: config.drop_categories has unknown {bad}; expected some of {CATEGORIES}")
+        raise JaxdenoiseError(f"lbf: config.drop_categories has unknown {bad}; expected some of {CATEGORIES}")
 
 
 def needs(config: Config) -> frozenset[str]:

@@ -30,7 +30,8 @@ from typing import Mapping, Sequence
 import jax
 import jax.numpy as jnp
 
-from ..filters._window import edge_blocks, pad_edge
+from ..arrays import edge_blocks, pad_edge
+from ..errors import JaxdenoiseError
 
 __all__ = ["PAPER_FEATURES", "CATEGORIES", "feature_names", "feature_categories", "secondary_features", "num_features",
            "box_mean", "sobel_magnitude", "mean_deviation", "median_abs_deviation"]
@@ -72,7 +73,7 @@ def feature_categories(features: Sequence[str]) -> list[str]:
 def box_mean(x: jax.Array, *, size: int) -> jax.Array:
     """Mean over a size x size block around each pixel (edge-replicated borders), separable."""
     if size % 2 != 1 or size < 1:
-        raise ValueError(f"box_mean: size must be a positive odd integer, got {size}")
+        raise JaxdenoiseError(f"box_mean: size must be a positive odd integer, got {size}")
     r = size // 2
     h, w = x.shape[-3], x.shape[-2]
     p = pad_edge(x, r)
@@ -123,10 +124,10 @@ def secondary_features(feats: Mapping[str, jax.Array], variances: Mapping[str, j
     """
     missing = [f for f in features if f not in feats or f not in variances]
     if missing:
-        raise ValueError(f"secondary_features: feats/variances lack {missing}; features={list(features)}")
+        raise JaxdenoiseError(f"secondary_features: feats/variances lack {missing}; features={list(features)}")
     ref = feats[features[0]] if features else None
     if ref is None:
-        raise ValueError("secondary_features: 'features' must name at least one additional feature")
+        raise JaxdenoiseError("secondary_features: 'features' must name at least one additional feature")
     spp = jnp.asarray(spp, jnp.float32)
     # spp of 0 or less is meaningless; clamp so 1/spp and var*spp stay finite.
     spp = jnp.maximum(spp, 1.0)

@@ -11,6 +11,7 @@ import dataclasses
 import numpy as np
 
 from ..buffers import Buffers
+from ..errors import MissingDependency
 
 JITTABLE = False
 
@@ -62,7 +63,7 @@ def _aux(buffers: Buffers, config: Config) -> tuple:
 def apply(params: dict, buffers: Buffers, config: Config):
     why = requirements()
     if why:
-        raise ImportError(why)
+        raise MissingDependency(why)
     import pyoidn
 
     color = np.asarray(buffers.color, np.float32)

@@ -13,6 +13,7 @@ import dataclasses
 
 from ..buffers import Buffers, map_frames
 from ..solvers import poisson as _sp
+from ..errors import JaxdenoiseError
 
 _SOLVERS = {"l2": ("dct", "cg"), "l1": ("irls", "admm")}  # first = default (docs/methods/poisson.md)
 
@@ -29,12 +30,12 @@ class Config:
 
     def __post_init__(self) -> None:
         if self.norm not in _SOLVERS:
-            raise ValueError(f"poisson Config: 'norm' is {self.norm!r}; expected 'l1' or 'l2'")
+            raise JaxdenoiseError(f"poisson Config: 'norm' is {self.norm!r}; expected 'l1' or 'l2'")
         if self.solver is not None and self.solver not in _SOLVERS[self.norm]:
-            raise ValueError(f"poisson Config: 'solver' is {self.solver!r}; expected one of "
+            raise JaxdenoiseError(f"poisson Config: 'solver' is {self.solver!r}; expected one of "
                              f"{_SOLVERS[self.norm]} for norm {self.norm!r}")
         if not (self.alpha > 0):
-            raise ValueError(f"poisson Config: 'alpha' is {self.alpha}; expected > 0")
+            raise JaxdenoiseError(f"poisson Config: 'alpha' is {self.alpha}; expected > 0")
 
     @property
     def resolved_solver(self) -> str:

@@ -32,6 +32,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+from ..errors import JaxdenoiseError
 
 __all__ = ["dct2", "idct2", "dct_apply", "laplacian_eigenvalue", "laplacian_eigenvalues"]
 
@@ -131,7 +132,7 @@ def _ortho(n1: int, n2: int, dtype):
 
 def _check_hwc(x, name):
     if x.ndim != 3:
-        raise ValueError(f"{name}: expected an HWC array (height, width, channels), got shape {x.shape}")
+        raise JaxdenoiseError(f"{name}: expected an HWC array (height, width, channels), got shape {x.shape}")
 
 
 @jax.jit

@@ -15,6 +15,7 @@ from typing import Any, Callable, NamedTuple, Union
 import jax
 import jax.numpy as jnp
 import numpy as np
+from ..errors import JaxdenoiseError
 
 __all__ = ["adam", "rprop", "AdamState", "RpropState", "schedule", "SCHEDULES", "clip_by_global_norm"]
 
@@ -26,7 +27,7 @@ def _check_positive(fn: str, **values):
         if callable(v):
             continue
         if not (np.ndim(v) == 0 and np.isfinite(float(v)) and float(v) > 0):
-            raise ValueError(f"{fn}: argument '{name}' is {v!r}; expected a finite scalar > 0")
+            raise JaxdenoiseError(f"{fn}: argument '{name}' is {v!r}; expected a finite scalar > 0")
 
 
 class AdamState(NamedTuple):
@@ -45,7 +46,7 @@ def adam(lr: Schedule, b1: float = 0.9, b2: float = 0.999, eps: float = 1e-8):
     _check_positive("adam", lr=lr, eps=eps)
     for name, b in (("b1", b1), ("b2", b2)):
         if not 0 <= b < 1:
-            raise ValueError(f"adam: argument '{name}' is {b}; expected 0 <= {name} < 1")
+            raise JaxdenoiseError(f"adam: argument '{name}' is {b}; expected 0 <= {name} < 1")
 
     def init(params):
         zeros = jax.tree_util.tree_map(jnp.zeros_like, params)
@@ -98,11 +99,11 @@ def rprop(step_init: float = 0.1, *, eta_plus: float = 1.2, eta_minus: float = 0
     _check_positive("rprop", step_init=step_init, eta_plus=eta_plus, eta_minus=eta_minus,
                     step_min=step_min, step_max=step_max)
     if variant not in _VARIANTS:
-        raise ValueError(f"rprop: argument 'variant' is {variant!r}; expected one of {_VARIANTS}")
+        raise JaxdenoiseError(f"rprop: argument 'variant' is {variant!r}; expected one of {_VARIANTS}")
     if not eta_minus < 1 < eta_plus:
-        raise ValueError(f"rprop: expected eta_minus < 1 < eta_plus, got {eta_minus}, {eta_plus}")
+        raise JaxdenoiseError(f"rprop: expected eta_minus < 1 < eta_plus, got {eta_minus}, {eta_plus}")
     if not step_min <= step_init <= step_max:
-        raise ValueError(f"rprop: expected step_min <= step_init <= step_max, got {step_min}, {step_init}, {step_max}")
+        raise JaxdenoiseError(f"rprop: expected step_min <= step_init <= step_max, got {step_min}, {step_init}, {step_max}")
 
     def init(params):
         return RpropState(
@@ -148,10 +149,10 @@ def schedule(name: str, lr: float, *, every: int = 1, factor: float = 1.0) -> Ca
     - ``"exponential"``: ``lr * factor ** (t / every)``.
     """
     if name not in SCHEDULES:
-        raise ValueError(f"schedule: unknown name {name!r}; expected one of {SCHEDULES}")
+        raise JaxdenoiseError(f"schedule: unknown name {name!r}; expected one of {SCHEDULES}")
     _check_positive("schedule", lr=lr, factor=factor)
     if not (isinstance(every, (int, np.integer)) and every >= 1):
-        raise ValueError(f"schedule: argument 'every' is {every!r}; expected an int >= 1")
+        raise JaxdenoiseError(f"schedule: argument 'every' is {every!r}; expected an int >= 1")
     lr, factor, every = float(lr), float(factor), int(every)
 
     def fn(t):

@@ -45,6 +45,7 @@ def solve_cg(*args, **kwargs):
 
     return cg(*args, **kwargs)
 from .dct import dct_apply, laplacian_eigenvalue
+from ..errors import JaxdenoiseError
 
 __all__ = [
     "SolverError", "gradient", "gradient_adjoint", "normal_matvec", "energy", "residual",
@@ -52,7 +53,7 @@ __all__ = [
 ]
 
 
-class SolverError(ValueError):
+class SolverError(JaxdenoiseError):
     """A solver was called with an argument of the wrong shape, dtype or value."""
 
 

@@ -294,10 +294,10 @@ def is_trainable(name: str) -> bool:
 
 def _apply_fn(name: str) -> Callable:
     """The inference function `jaxdenoise.denoise` uses (jitted and cached per method and config by
-    `jaxdenoise.api.inference_fn`), so the suite and the API share one compile per shape."""
-    from jaxdenoise import api
+    `jaxdenoise.inference.inference_fn`), so the suite and the API share one compile per shape."""
+    from jaxdenoise.inference import inference_fn
 
-    return api.inference_fn(method(name))
+    return inference_fn(method(name))
 
 
 @functools.lru_cache(maxsize=None)
@@ -321,6 +321,7 @@ def _step_fn(name: str) -> Callable:
 def check_method(name: str, case: Case, *, grad: bool = True) -> Outcome:
     """Run one method on one case (see the module docstring for the pass rule)."""
     from jaxdenoise import api
+    from jaxdenoise.inference import prepare
 
     try:
         m = method(name)
@@ -338,7 +339,7 @@ def check_method(name: str, case: Case, *, grad: bool = True) -> Outcome:
             if reads:  # must be refused before anything runs
                 out = api.denoise(buffers, method=name, params=params)
             else:  # denoise's own steps, reusing the compiled function of the value cases
-                out = _apply_fn(name)(params, api.prepare(m, buffers))
+                out = _apply_fn(name)(params, prepare(m, buffers))
         except BuffersError as e:
             if reads and case.bad_field in str(e) and "NaN/Inf" in str(e):
                 return Outcome(CLEAR, _exc(e))

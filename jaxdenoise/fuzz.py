@@ -154,7 +154,7 @@ def run_one(reader: str, path: str, work: str) -> tuple[str, str]:
     return "ok", ""
 
 
-def _worker() -> None:
+def worker() -> None:
     """Read cases as JSON lines on stdin, answer one JSON line each on stdout."""
     os.environ.setdefault("JAX_PLATFORMS", "cpu")
     for line in sys.stdin:
@@ -173,7 +173,7 @@ def run_cases(cases: list[dict], *, timeout: float = 30.0) -> list[dict]:
     proc = None
 
     def start():
-        return subprocess.Popen([sys.executable, "-c", "from jaxdenoise._fuzz import _worker; _worker()"],
+        return subprocess.Popen([sys.executable, "-c", "from jaxdenoise.fuzz import worker; worker()"],
                                 stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
                                 text=True, bufsize=1)
 

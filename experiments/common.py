@@ -1,0 +1,63 @@
+"""Helpers the experiment scripts share (one place each): timing a jitted call by the bench
+protocol, the plain U-Net the convolution experiments build, and packing run folders for `$OUT`.
+
+Scripts put ``experiments/`` on ``sys.path`` (they run as ``python experiments/NAME.py``) and
+``from common import ...``.
+"""
+from __future__ import annotations
+
+import statistics
+import tarfile
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+__all__ = ["tar_folders", "timed", "unet"]
+
+
+def timed(fn: Callable, *args: Any, runs: int) -> tuple[Any, dict]:
+    """``(output, stats)`` of ``jax.jit(fn)(*args)``: compiled ahead of time (``compile_s``), one
+    warm-up, then ``runs`` timed calls (``median_s``, ``runs_s`` wall; ``median_cpu_s``, ``cpu_s``
+    process CPU time), with XLA's cost analysis (``gflop``, ``gflops`` at the median) and its
+    temporary memory (``temp_bytes``)."""
+    import jax
+
+    t0 = time.perf_counter()
+    compiled = jax.jit(fn).lower(*args).compile()
+    compile_s = time.perf_counter() - t0
+    cost = compiled.cost_analysis()
+    cost = cost[0] if isinstance(cost, (list, tuple)) else cost
+    flops = float(cost.get("flops", float("nan"))) if cost else float("nan")
+    ma = compiled.memory_analysis()
+    out = jax.block_until_ready(compiled(*args))  # warm-up
+    ts, cpu = [], []
+    for _ in range(runs):
+        t0, c0 = time.perf_counter(), time.process_time()
+        out = jax.block_until_ready(compiled(*args))
+        ts.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    med = statistics.median(ts)
+    return out, {"median_s": med, "runs_s": ts, "compile_s": compile_s, "median_cpu_s": statistics.median(cpu),
+                 "cpu_s": cpu, "gflop": flops / 1e9, "gflops": flops / 1e9 / med,
+                 "temp_bytes": int(ma.temp_size_in_bytes) if ma else None}
+
+
+def unet(widths, out: int = 3, slope: float = 0.1):
+    """A plain U-Net of `jaxdenoise.nn` (two 3x3 convs and a leaky ReLU per stage, max pooling,
+    nearest up-sampling, a 3x3 output conv): ``(init, apply)``."""
+    from jaxdenoise import nn
+
+    act = nn.LeakyRelu(slope)
+    stage = lambda c: nn.serial(nn.Conv(c, 3), act, nn.Conv(c, 3), act)  # noqa: E731
+    return nn.UNet([stage(c) for c in widths], nn.MaxPool(2), stage(widths[-1]), nn.Upsample(2, "nearest"),
+                   [nn.serial(stage(c), *([nn.Conv(out, 3)] if i == 0 else [])) for i, c in enumerate(widths)])
+
+
+def tar_folders(out: Path, name: str, folders: dict[str, Path]) -> None:
+    """``out/name``: a tar of ``{arcname: folder}`` (missing folders left out), written atomically."""
+    tmp = out / f".{name}.tmp"
+    with tarfile.open(tmp, "w") as t:
+        for arc, folder in folders.items():
+            if folder.is_dir():
+                t.add(folder, arcname=arc)
+    tmp.rename(out / name)

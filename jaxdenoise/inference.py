@@ -1,0 +1,131 @@
+"""A method's inference on frames, below every entry point (`api`, `sequence`, `bench`, `train`):
+`prepare` validates a frame for a method and keeps what it reads; `inference_fn` is its jitted
+function, compiled once per input signature with XLA's memory estimate checked first (`Compiled`).
+"""
+from __future__ import annotations
+
+import functools
+import os
+from typing import Any, Callable
+
+import jax
+import numpy as np
+
+from .buffers import Buffers, BuffersError
+from .methods import Method, MethodError
+
+__all__ = ["Compiled", "available_memory", "check_finite", "inference_fn", "prepare", "buffers_read",
+           "missing_optional", "notes"]
+
+
+def check_finite(buffers: Buffers, names, *, where: str | None = None) -> None:
+    """Raise naming the buffer (and ``where``, e.g. the file) and the count of NaN/Inf values
+    (methods are not fed garbage)."""
+    for name in sorted(names):
+        value = getattr(buffers, name)
+        if value is None:
+            continue
+        bad = int(np.size(value) - np.isfinite(np.asarray(value, dtype=np.float32)).sum())
+        if bad:
+            raise BuffersError(f"{where + ': ' if where else ''}buffer '{name}' has {bad} NaN/Inf value(s); "
+                               f"repair the input first (jaxdenoise.io.read_buffers(..., repair='zero'))")
+
+
+def available_memory() -> int:
+    """Bytes this process may still allocate: the kernel's MemAvailable (Linux), else physical memory."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
+class Compiled:
+    """A method's jitted inference, compiled ahead of time once per input signature (tree structure,
+    shapes, dtypes) so that XLA's memory estimate is known **before** the program runs: a frame whose
+    program needs more than the available memory (arguments + outputs + temporaries, from
+    ``compiled.memory_analysis()``) is refused with that estimate (a `MethodError`) instead of being
+    killed by the operating system. ``compile(params, buffers)`` returns ``(compile seconds, XLA
+    bytes)`` (0 seconds when the signature was compiled before)."""
+
+    def __init__(self, m: Method) -> None:
+        self.name = m.name
+        self._jit = jax.jit(lambda params, buffers: m.module.apply(params, buffers, m.config))
+        self._cache: dict = {}
+
+    @staticmethod
+    def _key(params: Any, buffers: Any) -> tuple:
+        leaves, tree = jax.tree_util.tree_flatten((params, buffers))
+        return tree, tuple((np.shape(x), np.dtype(getattr(x, "dtype", type(x))).str) for x in leaves)
+
+    def compile(self, params: Any, buffers: Any) -> tuple[float, int | None]:
+        key = self._key(params, buffers)
+        if key in self._cache:
+            return 0.0, self._cache[key][1]
+        import time
+
+        t0 = time.perf_counter()
+        exe = self._jit.lower(params, buffers).compile()
+        seconds = time.perf_counter() - t0
+        ma = exe.memory_analysis()
+        need = (ma.argument_size_in_bytes + ma.output_size_in_bytes + ma.temp_size_in_bytes) if ma else None
+        free = available_memory()
+        if need is not None and need > free:
+            shape = getattr(buffers, "shape", None)
+            raise MethodError(f"method '{self.name}': this input ({shape}) needs {need / 2**30:.1f} GiB by XLA's "
+                              f"estimate (arguments + outputs + temporaries), more than the {free / 2**30:.1f} GiB "
+                              f"available; denoise a smaller frame or crop, or free memory")
+        self._cache[key] = (exe, need)
+        return seconds, need
+
+    def __call__(self, params: Any, buffers: Any) -> Any:
+        key = self._key(params, buffers)
+        if key not in self._cache:
+            self.compile(params, buffers)
+        return self._cache[key][0](params, buffers)
+
+
+@functools.lru_cache(maxsize=64)
+def _compiled(module, config, name) -> Compiled:
+    return Compiled(Method(name=name, module=module, config=config))
+
+
+def inference_fn(m: Method) -> Callable[[Any, Buffers], Any]:
+    """``fn(params, buffers) -> image``: a `Compiled` (cached per method and config: compiled once per
+    input signature, memory checked first) unless the method is foreign code (``JITTABLE = False``)."""
+    if m.jittable:
+        return _compiled(m.module, m.config, m.name)
+    return lambda params, buffers: m.module.apply(params, buffers, m.config)
+
+
+def prepare(m: Method, buffers: Buffers, *, where: str | None = None) -> Buffers:
+    """Validate ``buffers`` for ``m`` and keep only what it reads (required + present optional ones)
+    and the frame's metadata (``spp``; `Buffers.only` never drops it). ``where`` (e.g. the file
+    name) goes into every error."""
+    if not isinstance(buffers, Buffers):
+        raise BuffersError(f"{where + ': ' if where else ''}expected a jaxdenoise.Buffers, got {type(buffers).__name__}")
+    buffers.check_needs(m.required(), m.name, where=where)
+    used = m.needs() & buffers.present()
+    check_finite(buffers, used, where=where)
+    return buffers.only(used)
+
+
+def buffers_read(m: Method, buffers: Buffers) -> list[str]:
+    """The buffers ``m`` reads from this frame: what it needs and the frame has (what `prepare` keeps)."""
+    return sorted(m.needs() & buffers.present())
+
+
+def missing_optional(m: Method, buffers: Buffers) -> list[str]:
+    """The optional buffers ``m`` can use that this frame lacks: it runs without them (OIDN and the
+    bilateral filters on colour alone, `rae` with roughness 1, ...), which changes its result."""
+    return sorted((m.needs() - m.required()) - buffers.present())
+
+
+def notes(m: Method, buffers: Buffers) -> list[str]:
+    """Remarks on running ``m`` on this frame, for the API's warnings and each bench record's
+    ``notes`` (one list per record): the optional buffers it runs without."""
+    lacking = missing_optional(m, buffers)
+    return [f"{m.name} ran without optional buffer(s) {lacking} it can use"] if lacking else []
