@@ -72,6 +72,10 @@ def test_leading_axis_is_a_batch_of_independent_frames(name):
         for f, alone, batched in zip(frames, one, out):
             e = [float(energy(x, f.color, f.dx, f.dy, m.config.alpha, norm=BY_ENERGY[name])) for x in (alone, batched)]
             assert e[1] == pytest.approx(e[0], rel=1e-4)  # each frame's minimum, whether alone or in a batch
+        # and the other solver (ADMM, a fixed iteration count) pixel by pixel, as before
+        m = m.with_config(solver="admm")
+        one = [np.asarray(m.apply(params, f)) for f in frames]
+        np.testing.assert_allclose(np.asarray(m.apply(params, batch)), np.stack(one), atol=1e-5, rtol=1e-5)
         return
     # Tolerance 1e-5 absolute: the same float32 arithmetic, compiled once per frame or in a loop body.
     np.testing.assert_allclose(out, np.stack(one), atol=1e-5, rtol=1e-5)
