@@ -108,7 +108,7 @@ def prepare(m: Method, buffers: Buffers, *, where: str | None = None) -> Buffers
     if not isinstance(buffers, Buffers):
         raise BuffersError(f"{where + ': ' if where else ''}expected a jaxdenoise.Buffers, got {type(buffers).__name__}")
     buffers.check_needs(m.required(), m.name, where=where)
-    used = m.needs() & buffers.present()
+    used = buffers_read(m, buffers)
     check_finite(buffers, used, where=where)
     return buffers.only(used)
 
