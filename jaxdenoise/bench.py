@@ -409,14 +409,12 @@ def load_report(out_dir: str | os.PathLike) -> dict:
             "config": json.loads((out_dir / "config.json").read_text())}
 
 
-def write_reports(report: dict, out_dir: str | os.PathLike) -> None:
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+def report_markdown(report: dict) -> str:
+    """``results.md`` of a report (`load_report`'s dict, or `run`'s): the summary table, the
+    sequences and what was not run, read from the records alone (``scripts/results.py`` checks the
+    committed reports against it)."""
     rows = summarize(report["records"])
     temporal = report.get("temporal", [])
-    write_json(out_dir / "results.json", {"records": report["records"], "summary": rows,
-                                          "temporal": temporal, "skipped": report["skipped"]})
-    write_json(out_dir / "config.json", report["config"])
     cfg = report["config"]
     md = ["# Error against run time\n",
           f"Data: `{cfg['data_dir']}` (relative to this report; {cfg['shots']} shot(s), "
@@ -441,7 +439,17 @@ def write_reports(report: dict, out_dir: str | os.PathLike) -> None:
                 md.append(line)
     if any(r["seconds"] is None for r in rows):
         md.append("\nNo `error_vs_time.png`: this run took no timings (quality only).")
-    write_text(out_dir / "results.md", "\n".join(md) + "\n")
+    return "\n".join(md) + "\n"
+
+
+def write_reports(report: dict, out_dir: str | os.PathLike) -> None:
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rows = summarize(report["records"])
+    write_json(out_dir / "results.json", {"records": report["records"], "summary": rows,
+                                          "temporal": report.get("temporal", []), "skipped": report["skipped"]})
+    write_json(out_dir / "config.json", report["config"])
+    write_text(out_dir / "results.md", report_markdown(report))
     if all(r["seconds"] is not None for r in rows):
         plot(rows, out_dir / "error_vs_time.png")
 

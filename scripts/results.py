@@ -1,0 +1,633 @@
+"""The result pages' tables, written from the committed JSON (``docs/results/``).
+
+A page keeps its prose by hand and its numbers here: every table between
+
+    <!-- results: NAME -->
+    ...
+    <!-- /results -->
+
+is what the renderer ``NAME`` below writes from the JSON it names, and every committed ``bench``
+report (a folder with ``results.json`` + ``config.json``) has its ``results.md`` rewritten from its
+records by `jaxdenoise.bench.report_markdown`. So a number on a page is a number in a JSON file,
+and a page cannot keep a figure its data no longer has (``tests/test_results_pages.py`` runs
+``--check`` in the default test run).
+
+    python scripts/results.py            # rewrite every generated table and bench report
+    python scripts/results.py --check    # exit 1, naming each page that differs from its JSON
+
+An experiment that re-measures writes its JSON; this script then brings the pages up to date.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+import sys
+from pathlib import Path
+from typing import Callable
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+RESULTS = ROOT / "docs" / "results"
+BLOCK = re.compile(r"<!-- results: (?P<name>[\w.-]+) -->\n(?P<body>.*?)<!-- /results -->", re.S)
+
+
+class PageError(Exception):
+    """A page names a table this script does not know, or a table's JSON lacks a value it reads."""
+
+
+# -- reading and formatting -----------------------------------------------------------------------
+
+def load(results: Path, rel: str) -> dict:
+    path = results / rel
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise PageError(f"{path}: no such result file") from None
+    except json.JSONDecodeError as e:
+        raise PageError(f"{path}: not valid JSON ({e})") from None
+
+
+def num(v, spec: str = ".4g") -> str:
+    """One number as a page shows it; a missing value is an error (a page never prints a hole)."""
+    if v is None or not isinstance(v, (int, float)) or (isinstance(v, float) and not math.isfinite(v)):
+        raise PageError(f"expected a finite number, found {v!r}")
+    return format(v, spec)
+
+
+def table(header: list[str], rows: list[list[str]], align: str | None = None) -> str:
+    """A Markdown table; ``align`` one letter per column (l/r), default: first left, rest right."""
+    align = align or "l" + "r" * (len(header) - 1)
+    sep = ["---" if a == "l" else "---:" for a in align]
+    return "\n".join("| " + " | ".join(r) + " |" for r in [header, sep] + rows)
+
+
+def bold_min(cells: list[str], values: list[float]) -> list[str]:
+    """Bold the cell holding the smallest value (ties: all of them)."""
+    lo = min(values)
+    return [f"**{c}**" if v == lo else c for c, v in zip(cells, values)]
+
+
+def bold_max(cells: list[str], values: list[float]) -> list[str]:
+    hi = max(values)
+    return [f"**{c}**" if v == hi else c for c, v in zip(cells, values)]
+
+
+def summary_row(summary: list[dict], method: str, spp: int, rel: str) -> dict:
+    for r in summary:
+        if r["method"] == method and r["spp"] == spp:
+            return r
+    raise PageError(f"{rel}: no summary row for method {method!r} at {spp} spp")
+
+
+# -- renderers ------------------------------------------------------------------------------------
+
+TABLES: dict[str, Callable[[Path], str]] = {}
+
+
+def renderer(name: str):
+    def register(fn):
+        TABLES[name] = fn
+        return fn
+    return register
+
+
+def bench_wide(results: Path, rel: str, methods: list[str], spps: list[int]) -> str:
+    """Methods down, RelMSE and SSIM per rate across, from a bench report's summary; the best
+    RelMSE and SSIM at each rate in bold."""
+    summary = load(results, rel)["summary"]
+    cells = {(m, s): summary_row(summary, m, s, rel) for m in methods for s in spps}
+    cols: list[list[str]] = []
+    for s in spps:
+        rel_v = [cells[m, s]["relmse"] for m in methods]
+        ssim_v = [cells[m, s]["ssim"] for m in methods]
+        cols.append(bold_min([num(v) for v in rel_v], rel_v))
+        cols.append(bold_max([num(v, ".4f") for v in ssim_v], ssim_v))
+    header = ["method"] + [f"{s} spp {k}" for s in spps for k in ("RelMSE", "SSIM")]
+    frames = {cells[m, s]["frames"] for m in methods for s in spps}
+    rows = [[m] + [c[i] for c in cols] for i, m in enumerate(methods)]
+    return table(header, rows) + f"\n\nFrames per cell: {', '.join(str(f) for f in sorted(frames))}."
+
+
+def bench_time(results: Path, rel: str, methods: list[str], spp: int) -> str:
+    """Median time per frame, compile time and memory at one rate, from a bench report's summary."""
+    summary = load(results, rel)["summary"]
+    rows = []
+    for m in methods:
+        r = summary_row(summary, m, spp, rel)
+        rows.append([m, num(1e3 * r["seconds"], ".1f"), num(r["compile_seconds"], ".2f"),
+                     num(r["rss_peak_mb"], ".1f"), "-" if r.get("xla_mb") is None else num(r["xla_mb"], ".1f")])
+    return table(["method", "time per frame (ms, median)", "compile (s)", "RSS peak MB", "XLA MB"], rows)
+
+
+def network_speed(results: Path, rel: str) -> str:
+    """One network step at the JSON's size against OIDN measured in the same run."""
+    d = load(results, rel)
+    w, h = d["size"]
+    rows = [["OIDN (pyoidn)", num(1e3 * d["oidn"]["median_s"], ",.0f"), "-", "-", "1"]]
+    for m, r in d["methods"].items():
+        rows.append([f"`{m}`", num(1e3 * r["median_s"], ",.0f"), num(r["gflop"], ".1f"), num(r["gflops"], ".3g"),
+                     f"{num(r['vs_oidn'], '.2f')}x"])
+    mm = d["matmul_2048"]
+    return (table([f"{w}x{h}, median of {d['runs']}", "ms", "GFLOP (XLA)", "GFLOP/s", "time / OIDN's"], rows)
+            + f"\n\nPeak for reference: a 2048^3 float32 matmul in the same run, {num(mm['gflops'], '.0f')} GFLOP/s; "
+            f"{d['cpus']} cores, jax {d['jax']}, load average {num(d['load_before'][0], '.1f')} before, "
+            f"{num(d['load_after'][0], '.1f')} after.")
+
+
+# demc ---------------------------------------------------------------------------------------------
+
+@renderer("demc-heldout")
+def _demc_heldout(results: Path) -> str:
+    return bench_wide(results, "bench_heldout_demc/results.json",
+                      ["input", "gaussian", "bilateral", "lbf", "demc", "oidn"], [4, 16, 64])
+
+
+@renderer("demc-heldout-time")
+def _demc_heldout_time(results: Path) -> str:
+    return bench_time(results, "bench_heldout_demc/results.json", ["bilateral", "lbf", "demc", "oidn"], 4)
+
+
+@renderer("demc-speed")
+def _demc_speed(results: Path) -> str:
+    return network_speed(results, "network_speed.json")
+
+
+@renderer("demc-ablation")
+def _demc_ablation(results: Path) -> str:
+    """The equal-budget variants (Sec. 4.4, Fig. 9-10): per seed at the first rate, means per rate."""
+    d = load(results, "demc_ablation.json")
+    names = {"demc": "DEMC", "nosn": "DEMC-noSN (no fusion sub-network)", "semc": "SEMC (one encoder)"}
+    groups: dict[str, list[str]] = {}
+    for key, s in d["scores"].items():
+        if key not in ("main", "finetune"):  # the long runs, not the equal-budget variants
+            groups.setdefault(s["variant"], []).append(key)
+    spps = d["spp"]
+
+    mean = lambda key, field, spp: _mean(d, key, field, spp)
+    rows = []
+    for variant, keys in groups.items():
+        if variant not in names:
+            raise PageError(f"demc_ablation.json: unknown variant {variant!r}")
+        keys = sorted(keys)
+        first = spps[0]
+        rows.append([names[variant], " / ".join(num(mean(k, "relmse", first), ".3g") for k in keys),
+                     " / ".join(num(mean(k, "ssim", first), ".4f") for k in keys)]
+                    + [num(sum(mean(k, "relmse", s) for k in keys) / len(keys)) for s in spps]
+                    + [num(sum(mean(k, "ssim", s) for k in keys) / len(keys), ".4f") for s in spps])
+    return table(["variant", f"{spps[0]} spp RelMSE (seeds)", f"{spps[0]} spp SSIM (seeds)"]
+                 + [f"mean {s} spp RelMSE" for s in spps] + [f"mean {s} spp SSIM" for s in spps], rows,
+                 "lll" + "r" * (2 * len(spps)))
+
+
+@renderer("demc-long-runs")
+def _demc_long_runs(results: Path) -> str:
+    """The main run and the shipped fine-tune scored by the same script as the variants."""
+    d = load(results, "demc_ablation.json")
+    rows = []
+    for key, label in (("main", "main run"), ("finetune", "fine-tune of the main run (shipped)")):
+        rows.append([label] + [f"{num(_mean(d, key, 'relmse', s))} / {num(_mean(d, key, 'ssim', s), '.4f')}"
+                               for s in d["spp"]])
+    return table(["weights"] + [f"{s} spp RelMSE / SSIM" for s in d["spp"]], rows)
+
+
+def _mean(d: dict, key: str, field: str, spp: int) -> float:
+    rs = [r[field] for r in d["scores"][key]["rows"] if r["spp"] == spp]
+    if not rs:
+        raise PageError(f"demc_ablation.json: {key} has no rows at {spp} spp")
+    return sum(rs) / len(rs)
+
+
+@renderer("demc-position-norm")
+def _demc_position_norm(results: Path) -> str:
+    d = load(results, "demc_position_norm.json")
+    rows = []
+    for key, r in sorted(d["runs"].items()):
+        norm, seed = key.rsplit("_s", 1)
+        rows.append([norm, seed, num(r["as rendered"]), num(r["rescaled"]), num(r["final_loss"], ".3f")])
+    return (table(["position normalization", "seed", "validation RelMSE", "scene rescaled", "final loss"], rows)
+            + f"\n\n{d['steps']} steps of {d['batch']} crops of {d['crop']}x{d['crop']} per run.")
+
+
+# rae ----------------------------------------------------------------------------------------------
+
+def rae_temporal(results: Path, rel: str) -> str:
+    d = load(results, rel)
+    methods = ["input", "gaussian", "oidn", "rae", "rae-per-frame"]
+    by = {(r["sequence"], r["spp"], r["method"]): r for r in d["rows"]}
+    keys = sorted({(r["sequence"], r["spp"]) for r in d["rows"]}, key=lambda k: (k[0], k[1]))
+    rows = []
+    for seq, spp in keys:
+        def get(m, field):
+            r = by.get((seq, spp, m))
+            if r is None:
+                raise PageError(f"{rel}: no row for {m} on {seq} at {spp} spp")
+            return r[field]
+        rel_v = [get(m, "relmse") for m in methods]
+        tmp_v = [get(m, "temporal") for m in methods if m != "gaussian"]
+        rows.append([seq, str(spp)] + bold_min([num(v, ".3g") for v in rel_v], rel_v)
+                    + [" / ".join(num(v, ".3g") for v in tmp_v)]
+                    + [" / ".join(num(get(m, "ssim"), ".3f") for m in ("input", "oidn", "rae"))])
+    return table(["fly-through", "spp", "input", "gaussian", "OIDN", "rae (state carried)", "rae per frame",
+                  "temporal error: input / OIDN / rae / per frame", "SSIM: input / OIDN / rae"], rows,
+                 "lr" + "r" * 5 + "ll")
+
+
+@renderer("rae-temporal")
+def _rae_temporal(results: Path) -> str:
+    return rae_temporal(results, "rae_temporal.json")
+
+
+@renderer("rae-temporal-cbox")
+def _rae_temporal_cbox(results: Path) -> str:
+    return rae_temporal(results, "rae_temporal_cbox.json")
+
+
+@renderer("rae-temporal-means")
+def _rae_temporal_means(results: Path) -> str:
+    """Means over the procedural fly-throughs, per rate (RelMSE, SSIM, temporal error)."""
+    d = load(results, "rae_temporal.json")
+    methods = ["input", "oidn", "rae", "rae-per-frame"]
+    spps = sorted({r["spp"] for r in d["rows"]})
+    rows = []
+    for s in spps:
+        cells = []
+        for field, spec in (("relmse", ".3g"), ("ssim", ".3f"), ("temporal", ".3g")):
+            vals = []
+            for m in methods:
+                rs = [r[field] for r in d["rows"] if r["spp"] == s and r["method"] == m]
+                if not rs:
+                    raise PageError(f"rae_temporal.json: no {m} rows at {s} spp")
+                vals.append(sum(rs) / len(rs))
+            cells.append(" / ".join(num(v, spec) for v in vals))
+        rows.append([str(s)] + cells)
+    return table(["spp", "RelMSE: input / OIDN / rae / per frame", "SSIM", "temporal error"], rows, "rlll")
+
+
+@renderer("rae-train-gpu")
+def _rae_train_gpu(results: Path) -> str:
+    d = load(results, "rae_train_gpu.json")
+    rows = []
+    for key, r in d["runs"].items():
+        rows.append([key, r["variant"], str(r["seed"]), f"{r['steps']:,}", f"{r['crops_seen']:,}", f"{r['crop']}",
+                     num(r["seconds"], ".0f"), f"{num(r['best']['relmse'], '.4g')} / {num(r['best']['ssim'], '.4f')} "
+                     f"(step {r['best']['step']:,})"])
+    return table(["run", "variant", "seed", "steps", "sequences seen", "crop", "seconds", "best validation RelMSE / SSIM"],
+                 rows, "llrrrrrr")
+
+
+@renderer("rae-ablation")
+def _rae_ablation(results: Path) -> str:
+    """The ablation runs compared at the step every run reached."""
+    d = load(results, "rae_train_gpu.json")
+    variants = {"full": "combined loss L_s + L_g + L_t, all inputs (the paper)",
+                "spatial": "spatial loss L_s only, all inputs", "noaux": "combined loss, no auxiliary input"}
+    step = d["studies"]["loss"]["step"]
+    rows = []
+    for short, label in variants.items():
+        cells, ssims = [], []
+        for seed in (0, 1):
+            r = d["runs"][f"abl_{short}_s{seed}"]
+            v = [x for x in r["validation"] if x["step"] == step]
+            if not v:
+                raise PageError(f"rae_train_gpu.json: abl_{short}_s{seed} has no validation at step {step}")
+            cells.append(f"{num(v[0]['relmse'])} / {num(v[0]['ssim'], '.4f')}")
+            ssims.append(v[0]["ssim"])
+        rows.append([label] + cells + [num(sum(ssims) / 2, ".4f")])
+    return table(["variant", "seed 0 RelMSE / SSIM", "seed 1 RelMSE / SSIM", "mean SSIM"], rows) + \
+        f"\n\nAll at step {step:,}, validation on the 4 validation fly-throughs at 1 spp."
+
+
+@renderer("rae-bench-time")
+def _rae_bench_time(results: Path) -> str:
+    return bench_time(results, "bench_rae_test/results.json", ["gaussian", "oidn", "rae"], 1)
+
+
+@renderer("rae-speed")
+def _rae_speed(results: Path) -> str:
+    d = load(results, "network_speed.json")
+    r = d["methods"]["rae"]
+    return (network_speed(results, "network_speed.json")
+            + f"\n\n`rae`'s carried state at {d['size'][0]}x{d['size'][1]}: {num(r['state_mb'], '.0f')} MB.")
+
+
+# lbf ----------------------------------------------------------------------------------------------
+
+@renderer("lbf-claims")
+def _lbf_claims(results: Path) -> str:
+    """Claims (a) and (b): LBF against the best global setting of the same filter (searched at the
+    trained rates only) and the input, at the trained rates and above them."""
+    d = load(results, "lbf_heldout/lbf_eval.json")
+    rows = []
+    for p in d["per_spp"]:
+        g = p.get("global_best")
+        keys = ["input", "lbf", "lbf-nlm"] + (["global_best"] if g else [])
+        rel_v = [p[k]["relmse"] for k in keys]
+        cells = dict(zip(keys, bold_min([num(v) for v in rel_v], rel_v)))
+        rows.append([str(p["spp"]), str(p["frames"]), cells["input"], cells.get("global_best", "-"),
+                     f"`{g['setting']}`" if g else "-", cells["lbf"], cells["lbf-nlm"],
+                     num(p["global_best"]["ssim"], ".4f") if g else "-", num(p["lbf"]["ssim"], ".4f"),
+                     num(p["lbf-nlm"]["ssim"], ".4f")])
+    return table(["spp", "frames", "input", "best global setting", "setting", "lbf", "lbf-nlm",
+                  "SSIM global", "SSIM lbf", "SSIM lbf-nlm"], rows, "rrrrlrrrrr")
+
+
+@renderer("lbf-ablation")
+def _lbf_ablation(results: Path) -> str:
+    d = load(results, "lbf_ablation.json")
+    by: dict[tuple[str, str], list[dict]] = {}
+    for r in d["results"]:
+        by.setdefault((r["group"], r["variant"]), []).append(r)
+    spps = [str(s) for s in d["test_spp"]]
+    rows = []
+    for (group, variant), rs in by.items():
+        mean = lambda f: sum(f(r) for r in rs) / len(rs)
+        rows.append([group, variant, str(len(rs)), num(mean(lambda r: r["test_relmse"]))]
+                    + [num(mean(lambda r, s=s: r["test_relmse_by_spp"][s])) for s in spps]
+                    + [num(mean(lambda r: r["test_ssim"]), ".4f")])
+    return (table(["claim", "variant", "seeds", "RelMSE (all)"] + [f"RelMSE {s} spp" for s in spps] + ["SSIM"], rows,
+                  "llr" + "r" * (len(spps) + 2))
+            + f"\n\nInput RelMSE {num(d['input_relmse'])}; {d['steps']} RPROP steps per variant, "
+            f"{len(d['train_scenes'])} training scenes, {d['test_frames']} held-out frames.")
+
+
+@renderer("lbf-timing")
+def _lbf_timing(results: Path) -> str:
+    d = load(results, "lbf_timing.json")
+    rows = []
+    for m, r in d["methods"].items():
+        rows.append([f"`{m}`", num(r["features"]["median"], ".2f"), num(r["filter"]["median"], ".2f"),
+                     num(r["network"]["median"], ".3f"), f"**{num(r['total_median'], '.1f')}**",
+                     f"{num(r['ratio_to_gaussian'], ',.0f')}x"])
+    g = d["gaussian_sigma2"]["median"]
+    return (table([f"{d['width']}x{d['height']}, seconds (median of {d['runs']})", "features", "filter", "network",
+                   "total", "vs a Gaussian blur"], rows)
+            + f"\n\nThe Gaussian blur (sigma 2) of the same frame: {num(1e3 * g, '.1f')} ms. "
+            f"Load average {num(d['load_avg_start'][0], '.1f')} at start, {num(d['load_avg_end'][0], '.1f')} at end.")
+
+
+@renderer("lbf-bench")
+def _lbf_bench(results: Path) -> str:
+    return bench_wide(results, "bench_heldout/results.json", ["input", "gaussian", "bilateral", "nlm", "lbf", "lbf-nlm",
+                                                              "oidn"], [4, 16, 64])
+
+
+@renderer("lbf-bench-time")
+def _lbf_bench_time(results: Path) -> str:
+    return bench_time(results, "bench_heldout/results.json", ["bilateral", "nlm", "lbf", "lbf-nlm", "oidn"], 4)
+
+
+# gradnet ------------------------------------------------------------------------------------------
+
+@renderer("gradnet-eval")
+def _gradnet_eval(results: Path) -> str:
+    d = load(results, "gradnet_eval.json")
+    methods = ["input", "poisson-l2", "poisson-l1", "gradnet", "gradnet-no-postprocess"]
+    rows = []
+    for spp in sorted(d["summary"], key=int):
+        s = d["summary"][spp]
+        rel_v = [s[m]["relmse"] for m in methods]
+        ssim_v = [s[m]["ssim"] for m in methods]
+        rc = bold_min([num(v) for v in rel_v], rel_v)
+        sc = bold_max([num(v, ".3f") for v in ssim_v], ssim_v)
+        rows.append([spp] + [f"{a} / {b}" for a, b in zip(rc, sc)])
+    return table(["spp", "input", "poisson-l2", "poisson-l1", "gradnet", "gradnet, no post-process"], rows)
+
+
+@renderer("gradnet-ratios")
+def _gradnet_ratios(results: Path) -> str:
+    d = load(results, "gradnet_eval.json")
+    rows = []
+    for spp in sorted(d["summary"], key=int):
+        s = d["summary"][spp]
+        per = [r for r in d["rows"] if str(r["spp"]) == spp]
+        if len(per) != s["frames"]:
+            raise PageError(f"gradnet_eval.json: {len(per)} frame rows at {spp} spp, summary says {s['frames']}")
+        geo = math.exp(sum(math.log(r["poisson-l1"]["relmse"] / r["gradnet"]["relmse"]) for r in per) / len(per))
+        rows.append([spp, f"{num(s['l2_over_gradnet'], '.1f')}x", f"{num(s['l1_over_gradnet'], '.2f')}x",
+                     f"{num(geo, '.2f')}x",
+                     f"{s['gradnet_wins_per_frame_l1']}, {s['gradnet_wins_per_frame_l2']} of {s['frames']}"])
+    return table(["spp", "L2 / GradNet (mean)", "L1 / GradNet (mean)", "L1 / GradNet (geometric mean over frames)",
+                  "frames where GradNet beats L1, L2"], rows)
+
+
+@renderer("gradnet-equal-time")
+def _gradnet_equal_time(results: Path) -> str:
+    """Every method on G-PT and plain renders, ordered by total time (render + denoise, medians)."""
+    rows = load(results, "gradnet_equal_time/rows.json")["rows"]
+    out = []
+    for r in sorted(rows, key=lambda r: r["render_seconds"] + r["seconds"]):
+        out.append([r["method"], str(r["spp"]), str(r["frames"]), num(r["relmse"]), num(r["ssim"], ".4f"),
+                    num(r["render_seconds"], ".3f"), num(r["seconds"], ".3f"),
+                    num(r["render_seconds"] + r["seconds"], ".3f")])
+    return table(["method", "spp", "frames", "RelMSE", "SSIM", "render s", "denoise s", "total s"], out)
+
+
+@renderer("gradnet-speed")
+def _gradnet_speed(results: Path) -> str:
+    return network_speed(results, "gradnet_speed.json")
+
+
+@renderer("gradnet-multispp")
+def _gradnet_multispp(results: Path) -> str:
+    d = load(results, "gradnet_multispp_curve.json")
+    v = d["validation"]
+    spps = sorted(v[0]["per_spp"], key=int)
+    best = min(v, key=lambda r: r["relmse"])
+    rows = [[f"{len(v)} validations, steps {v[0]['step']:,}-{v[-1]['step']:,} (range)"]
+            + [f"{num(min(r['per_spp'][s] for r in v), '.3g')}-{num(max(r['per_spp'][s] for r in v), '.3g')}"
+               for s in spps],
+            [f"best (step {best['step']:,})"] + [num(best["per_spp"][s], ".3g") for s in spps]]
+    return table(["16/64/256-spp training, validation RelMSE"] + [f"{s} spp" for s in spps], rows) + \
+        f"\n\nStopped at step {d['stopped_at_step']:,}."
+
+
+@renderer("gradnet-loss-optimum")
+def _gradnet_loss_optimum(results: Path) -> str:
+    rows = []
+    for rel in ("gradnet_loss_optimum_test16.json", "gradnet_loss_optimum.json", "gradnet_loss_optimum_test64.json",
+                "gradnet_loss_optimum_test256.json"):
+        d = load(results, rel)
+        m = d["mean"]
+        keys = [k for k in ("input", "optimum_alpha1", "optimum_alpha0.2", "poisson-l1") if k in m]
+        rows.append([f"`{rel}`", str(d["spp"]), str(len(d["rows"]))] +
+                    [num(m[k]) if k in m else "-" for k in ("input", "optimum_alpha1", "optimum_alpha0.2", "poisson-l1")])
+        if not keys:
+            raise PageError(f"{rel}: no mean scores")
+    return table(["frames", "spp", "count", "input", "loss optimum (alpha 1)", "loss optimum (alpha 0.2)", "poisson-l1"],
+                 rows, "lrrrrrr")
+
+
+def ablation_curves(results: Path, rel: str) -> str:
+    """Validation RelMSE of every variant of one ``gradnet_ablation.py`` study at every validation."""
+    d = load(results, rel)["results"]
+    steps = sorted({v["step"] for r in d.values() for v in r["validation"]})
+    rows = []
+    for name, r in d.items():
+        by = {v["step"]: v["relmse"] for v in r["validation"]}
+        rows.append([name] + [num(by[s]) if s in by else "-" for s in steps])
+    last = steps[-1]
+    vals = [next((v["relmse"] for v in r["validation"] if v["step"] == last), math.inf) for r in d.values()]
+    for row, v in zip(rows, vals):
+        if v == min(vals):
+            row[-1] = f"**{row[-1]}**"
+    return table(["variant"] + [f"step {s:,}" for s in steps], rows)
+
+
+@renderer("gradnet-ablation")
+def _gradnet_ablation(results: Path) -> str:
+    return ablation_curves(results, "gradnet_ablation/ablation.json")
+
+
+@renderer("gradnet-decoder")
+def _gradnet_decoder(results: Path) -> str:
+    return ablation_curves(results, "gradnet_decoder/ablation.json")
+
+
+@renderer("gradnet-ablation-seeds")
+def _gradnet_ablation_seeds(results: Path) -> str:
+    """The loss study over three seeds: each seed's last validation, and the seed mean at each."""
+    studies = [load(results, f"{folder}/ablation.json")["results"]
+               for folder in ("gradnet_ablation", "gradnet_ablation_seed1", "gradnet_ablation_seed2")]
+    rows = []
+    for name in studies[0]:
+        curves = []
+        for i, st in enumerate(studies):
+            if name not in st:
+                raise PageError(f"seed {i}'s study lacks the variant {name!r}")
+            curves.append({v["step"]: v["relmse"] for v in st[name]["validation"]})
+        steps = sorted(set.intersection(*(set(c) for c in curves)))
+        mean = [sum(c[s] for c in curves) / len(curves) for s in steps]
+        rows.append([name] + [num(c[steps[-1]]) for c in curves] + [" / ".join(num(m) for m in mean)])
+    return table(["variant", "seed 0", "seed 1", "seed 2", f"seed mean, steps {' / '.join(f'{s:,}' for s in steps)}"],
+                 rows, "lrrrl") + f"\n\nSeeds' columns: validation RelMSE at step {steps[-1]:,}."
+
+
+@renderer("gradnet-converged")
+def _gradnet_converged(results: Path) -> str:
+    d = load(results, "gradnet_ablation_converged/ablation.json")["results"]
+    rows = []
+    for name, r in d.items():
+        v = r["validation"]
+        late = sorted(x["relmse"] for x in v if x["step"] >= 12000)
+        if not late:
+            raise PageError(f"gradnet_ablation_converged: {name} has no validation from step 12,000")
+        med = late[len(late) // 2] if len(late) % 2 else (late[len(late) // 2 - 1] + late[len(late) // 2]) / 2
+        rows.append([name, f"{num(r['best']['relmse'])} ({r['best']['step']:,})", num(med),
+                     f"{num(v[-1]['relmse'])} ({v[-1]['step']:,})"])
+    return table(["validation RelMSE, 64 spp (8 frames)", "best (step)", "median, steps 12,000 on", "last (step)"], rows)
+
+
+TRIED = [("gradnet_eval.json", "shipped: L_all, 64x64 crops, 32,000 steps, 256 renders at 64 spp, seed 0"),
+         ("gradnet_eval_no_first_order.json", "L_data + L_grad, full schedule (Fig. 12's other arm)"),
+         ("gradnet_eval_seed1_L_all.json", "L_all, full schedule, seed 1"),
+         ("gradnet_eval_x3_data.json", "3x the training renders (stopped at step 17,400)"),
+         ("gradnet_eval_crop128.json", "128x128 crops at the same pixel budget, 8,000 steps"),
+         ("gradnet_eval_crop128_14k.json", "128x128 crops continued to 14,000 steps"),
+         ("gradnet_eval_ema.json", "weight average (EMA 0.999) of the main run")]
+
+
+@renderer("gradnet-tried")
+def _gradnet_tried(results: Path) -> str:
+    """Every trained variant's best-validation weights on the same test frames."""
+    rows = []
+    l1 = None
+    for rel, label in TRIED:
+        s = load(results, rel)["summary"]
+        spps = sorted(s, key=int)
+        l1 = l1 or [s[x]["poisson-l1"]["relmse"] for x in spps]
+        rows.append([label] + [num(s[x]["gradnet"]["relmse"]) for x in spps]
+                    + [num(s[spps[-1]]["gradnet-no-postprocess"]["relmse"])])
+    rows.append(["`poisson-l1`"] + [num(v) for v in l1] + ["-"])
+    return table(["weights (best validation step)"] + [f"{x} spp" for x in spps] + [f"{spps[-1]} spp, no post-process"],
+                 rows)
+
+
+# demo ---------------------------------------------------------------------------------------------
+
+@renderer("demo-time")
+def _demo_time(results: Path) -> str:
+    d = load(results, "demo/demo.json")
+    return table(["scene", "size", "spp", "reference spp", "rendered now", "render s", "demo s (render + bench)"],
+                 [[f"`{d['scene']}`", f"{d['size']}x{d['size']}", ", ".join(str(s) for s in d["spp"]),
+                   str(d["ref_spp"]), ", ".join(d["rendered_now"]) or "nothing (cached)",
+                   num(d["render_seconds"], ".1f"), num(d["total_seconds"], ".0f")]], "lrrrlrr")
+
+
+@renderer("demo-results")
+def _demo_results(results: Path) -> str:
+    """The demo report's own summary table (`jaxdenoise.bench.markdown_table`)."""
+    from jaxdenoise import bench
+    return bench.markdown_table(load(results, "demo/results.json")["summary"])
+
+
+# -- pages ----------------------------------------------------------------------------------------
+
+def render_page(text: str, results: Path, page: Path) -> str:
+    def sub(m: re.Match) -> str:
+        name = m["name"]
+        if name not in TABLES:
+            raise PageError(f"{page}: unknown table {name!r} (scripts/results.py knows {', '.join(sorted(TABLES))})")
+        try:
+            body = TABLES[name](results)
+        except KeyError as e:
+            raise PageError(f"{page}: table {name!r}: its JSON lacks {e}") from None
+        except (IndexError, TypeError, ValueError) as e:
+            raise PageError(f"{page}: table {name!r}: its JSON holds an unexpected value ({e})") from None
+        except PageError as e:
+            raise PageError(f"{page}: table {name!r}: {e}") from None
+        return f"<!-- results: {name} -->\n\n{body}\n\n<!-- /results -->"
+    return BLOCK.sub(sub, text)
+
+
+def expected(results: Path = RESULTS) -> dict[Path, str]:
+    """Every generated page under ``results`` and what it should hold."""
+    from jaxdenoise import bench
+    out: dict[Path, str] = {}
+    for page in sorted(results.rglob("*.md")):
+        text = page.read_text()
+        if BLOCK.search(text):
+            out[page] = render_page(text, results, page)
+    for res in sorted(results.rglob("results.json")):
+        if (res.parent / "config.json").exists():
+            try:
+                out[res.parent / "results.md"] = bench.report_markdown(bench.load_report(res.parent))
+            except (KeyError, IndexError, TypeError, ValueError) as e:
+                raise PageError(f"{res}: not a complete bench report ({type(e).__name__}: {e})") from None
+    return out
+
+
+def stale(results: Path = RESULTS) -> list[Path]:
+    """The generated pages whose committed text differs from what their JSON gives."""
+    return [p for p, text in expected(results).items() if not p.exists() or p.read_text() != text]
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--check", action="store_true", help="change nothing; exit 1 if a page differs from its JSON")
+    ap.add_argument("--results", default=str(RESULTS), help="the results folder (default docs/results)")
+    a = ap.parse_args(argv)
+    results = Path(a.results)
+    try:
+        pages = expected(results)
+    except PageError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    changed = [p for p, text in pages.items() if not p.exists() or p.read_text() != text]
+    if a.check:
+        for p in changed:
+            print(f"stale: {p} (run python scripts/results.py)")
+        return 1 if changed else 0
+    from jaxdenoise.fsutil import write_text
+    for p in changed:
+        write_text(p, pages[p])
+        print(f"wrote {p}")
+    print(f"{len(pages)} generated pages, {len(changed)} rewritten")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
