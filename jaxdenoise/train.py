@@ -42,7 +42,9 @@ Outputs under ``out_dir``:
 - ``train_config.json``: the resolved configuration (method config, training config, data, seed);
 - ``summary.json``: the returned summary (its ``line`` is the one-line summary the CLI prints);
 - ``best/`` (only with validation data): the params with the lowest validation error so far, same
-  format as ``weights/``, with the step and the scores in its ``config.json``.
+  format as ``weights/``, with the step and the scores in its ``config.json``, and the run's whole
+  validation curve so far in ``selection.json`` (`selection_curve`; ``weights/`` gets it too): the
+  curve a shipped weight file's README points to.
 
 Validation (``val_data`` and ``validate_every > 0``): every ``validate_every`` steps and at the end,
 the current params denoise one render per shot and sampling rate of ``val_data`` (the first noise
@@ -103,12 +105,13 @@ from .errors import JaxdenoiseError
 
 __all__ = ["TrainConfig", "TrainError", "TrainingData", "State", "Group", "Stepper", "train", "load_data",
            "initial_state", "param_groups", "optimizer_state", "step_fn", "make_stepper", "validation_round", "save_checkpoint",
-           "save_weights", "restore_like", "make_optimizer", "model_fields", "summary_line", "load_validation",
+           "save_weights", "selection_curve", "restore_like", "make_optimizer", "model_fields", "summary_line", "load_validation",
            "validate", "shard_batch", "batch_workers"]
 
 CHECKPOINT_DIR = "checkpoint"
 WEIGHTS_DIR = "weights"
 BEST_DIR = "best"
+SELECTION_FILE = "selection.json"  # the validation curve beside best/ and weights/
 
 
 # Batches drawn ahead on worker threads (the batch of step t depends on (seed, t) only).
@@ -520,6 +523,17 @@ def save_weights(folder: Path, method: Method, run: TrainConfig, data: TrainingD
     checkpoint.save(folder, state.shipped, method.config,
                     extra={"method": method.name, "steps": state.step, "data": str(data.source),
                            "seed": int(run.seed), "bad_steps": state.bad_steps, **extra})
+    if state.validation:
+        write_json(folder / SELECTION_FILE, selection_curve(method, run, state))
+
+
+def selection_curve(method: Method, run: TrainConfig, state: State) -> dict:
+    """``selection.json`` beside saved weights: every validation record of the run so far and the
+    step ``best/`` holds, the curve a weights README points to when the weights ship."""
+    return {"method": method.name, "val_data": None if run.val_data is None else str(run.val_data),
+            "val_spps": run.val_spps, "metric": "mean RelMSE over the validation frames (metrics.relmse)",
+            "selected_step": None if state.best is None else state.best["step"],
+            "bad_steps": state.bad_steps, "validation": state.validation}
 
 
 # -- devices and validation frames ------------------------------------------------------------------
@@ -722,6 +736,8 @@ def train(method: Method, data: str | os.PathLike | TrainingData, out_dir: str |
         if state.best is None or record["relmse"] < state.best["relmse"]:
             state.best = record
             save_weights(out_dir / BEST_DIR, method, run, data, state, val_data=run.val_data, validation=record)
+        else:  # the curve beside best/ runs on past the step it holds
+            write_json(out_dir / BEST_DIR / SELECTION_FILE, selection_curve(method, run, state))
         if bar is not None:
             bar.write(f"step {state.step}: validation RelMSE {record['relmse']:.5g} (best {state.best['relmse']:.5g} "
                       f"at step {state.best['step']}; {record['seconds']:.0f} s)")

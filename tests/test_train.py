@@ -118,6 +118,11 @@ def test_validation_keeps_the_best_params_and_resumes_its_record(dataset, tmp_pa
     rescored = validate(method, restore_like(params, params), frames)
     np.testing.assert_allclose(rescored["relmse"], best["relmse"], rtol=1e-6)
     assert "best validation RelMSE" in full["line"]
+    # the whole curve beside best/ (past the step it holds) and weights/: what a weights README ships
+    for folder in ("best", "weights"):
+        curve = json.loads((tmp_path / "full" / folder / "selection.json").read_text())
+        assert [v["step"] for v in curve["validation"]] == steps and curve["selected_step"] == best["step"]
+        assert [v["relmse"] for v in curve["validation"]] == [v["relmse"] for v in full["validation"]]
 
     fit("lbf", dataset, tmp_path / "part", steps=2, **kw)
     resumed = fit("lbf", dataset, tmp_path / "part", steps=4, resume=True, **kw)
