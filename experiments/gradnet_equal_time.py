@@ -2,7 +2,9 @@
 item 6, last bullet): the gradient-domain bench (``poisson-l2``, ``poisson-l1``, ``gradnet`` on G-PT
 frames, whose render time includes the gradient render) and the primal-domain bench (``input`` =
 plain path tracing, ``oidn``, on plain renders of the same scenes with the same references) merged
-into one `jaxdenoise.bench.plot`: x = render + denoise seconds (medians), y = mean RelMSE.
+into one `jaxdenoise.bench.plot`: x = render + denoise seconds (medians), y = mean RelMSE. Writes
+``error_vs_time.png`` and ``rows.json``; the table on docs/results/gradnet.md is written from
+``rows.json`` by ``python scripts/results.py``.
 
     jaxdenoise bench data/gradnet_test --methods input,poisson-l2,poisson-l1,gradnet --out runs/bench_gradnet
     jaxdenoise bench data/gradnet_test_plain --methods input,oidn --out runs/bench_gradnet_plain
@@ -19,7 +21,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from jaxdenoise import bench  # noqa: E402
-from jaxdenoise.fsutil import write_json, write_text  # noqa: E402
+from jaxdenoise.fsutil import write_json  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -38,13 +40,8 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     bench.plot(rows, out / "error_vs_time.png")
-    lines = ["| method | spp | frames | RelMSE | SSIM | render s | denoise s | total s |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
-    for r in sorted(rows, key=lambda r: r["render_seconds"] + r["seconds"]):
-        lines.append(f"| {r['method']} | {r['spp']} | {r['frames']} | {r['relmse']:.4g} | {r['ssim']:.4f} | "
-                     f"{r['render_seconds']:.3f} | {r['seconds']:.3f} | {r['render_seconds'] + r['seconds']:.3f} |")
-    write_text(out / "table.md", "\n".join(lines) + "\n")
     write_json(out / "rows.json", {"gradient": args.gradient, "plain": args.plain, "rows": rows})
-    print("\n".join(lines))
+    print(f"gradnet_equal_time: {len(rows)} rows -> {out / 'rows.json'}; then: python scripts/results.py")
     return 0
 
 

@@ -10,6 +10,15 @@ one sequence driver (`jaxdenoise.sequence`): recurrent methods carry their state
 (sequence, render, method) a temporal record with the temporal error (`metrics.temporal_error`)
 and the mean RelMSE / SSIM over its frames.
 
+Render time, per method (the equal-time axis): a method is charged the passes that made what it
+read (`charged_render_seconds`). data_gen renders a frame in one buffer pass (the colour and every
+auxiliary buffer come out of it together, so every method pays that pass whole) and, for gradient
+frames, a gradient pass (``dx``, ``dy``; with ``--primal gpt`` the colour too). A method that reads
+``dx``/``dy``, or the colour of a frame whose colour is the G-PT primal, is charged both passes;
+any other method the buffer pass alone. Each record also keeps the whole frame's time
+(``frame_render_seconds``) and the raw input's error on that frame (``input_relmse``), so every
+table row shows the error it started from and flags a method that made the image worse.
+
 Memory, one quantity per column (docs/metrics.md):
 
 - ``rss_peak_bytes``: the growth of the process's resident set from just before the warm-up call
@@ -36,7 +45,7 @@ from . import metrics
 from .api import resolve
 from .inference import buffers_read, inference_fn, notes, prepare
 from .buffers import Buffers
-from .data import Shot, discover, sequences
+from .data import Render, Shot, discover, sequences
 from .fsutil import atomic_path, write_json, write_text
 from .io import read_buffers, read_image
 from .methods import Method, MethodError
@@ -44,6 +53,18 @@ from .viewer import ImageStore, write_viewer
 from .errors import JaxdenoiseError
 
 MIN_RUNS = 5
+GRADIENT_BUFFERS = frozenset({"dx", "dy"})  # what the gradient pass of a frame makes
+
+
+def charged_render_seconds(render: Render, read: Iterable[str]) -> float | None:
+    """The render time a method that read the buffers ``read`` of ``render`` is charged (module
+    docstring); None when the frame's time is unknown."""
+    if render.render_seconds is None:
+        return None
+    read = set(read)
+    if not render.gradient_seconds or read & GRADIENT_BUFFERS or (render.primal == "gpt" and "color" in read):
+        return render.render_seconds
+    return max(0.0, render.render_seconds - render.gradient_seconds)
 
 
 class _RssPeak:
@@ -255,7 +276,7 @@ def run(data_dir: str | os.PathLike, methods: Iterable[str], out_dir: str | os.P
                     skipped.append({"method": name, "file": str(render.path.relative_to(data_dir)), "reason": str(e)})
                     bar.update(1)
                     continue
-                rec = _record(shot, render, name, r, r["image"], ref, data_dir, buffers=buffers_read(m, buffers),
+                rec = _record(shot, render, name, r, r["image"], ref, data_dir, buffers, buffers_read(m, buffers),
                               notes=notes(m, buffers))
                 if d is not None:  # the quality columns as the workers computed them
                     rec.update({k: d[k] for k in ("relmse", "ssim", "psnr")})
@@ -283,8 +304,8 @@ def run(data_dir: str | os.PathLike, methods: Iterable[str], out_dir: str | os.P
                     bar.update(1)
                     continue
                 r = time_sequence(m, params, frames, runs=runs, names=[str(x.path) for x in renders])
-                recs = [_record(s, x, name, r, img, ref, data_dir, sequence=_relative(seq.folder, data_dir),
-                                frame=s.frame, buffers=buffers_read(m, b), notes=notes(m, b))
+                recs = [_record(s, x, name, r, img, ref, data_dir, b, buffers_read(m, b),
+                                sequence=_relative(seq.folder, data_dir), frame=s.frame, notes=notes(m, b))
                         for s, x, img, ref, b in zip(seq.shots, renders, r["images"], refs, frames)]
                 for rec, img, ref, s in zip(recs, r["images"], refs, seq.shots):
                     rec["reference_image"] = store.add(f"ref:{rec['sequence']}/{s.name}", ref)
@@ -316,13 +337,15 @@ def _untimed(m: Method, params: Any, buffers: Buffers, where: str, scored: dict 
             "xla_bytes": None}
 
 
-def _record(shot: Shot, render, method: str, r: dict, image: np.ndarray, ref: np.ndarray, data_dir: Path,
-            **extra: Any) -> dict:
+def _record(shot: Shot, render: Render, method: str, r: dict, image: np.ndarray, ref: np.ndarray, data_dir: Path,
+            buffers: Buffers, read: list[str], **extra: Any) -> dict:
     rec = {"shot": shot.name, "file": str(render.path.relative_to(data_dir)), "spp": render.spp,
-           "render_seconds": render.render_seconds, "method": method, "seconds": r["seconds"],
+           "render_seconds": charged_render_seconds(render, read), "frame_render_seconds": render.render_seconds,
+           "method": method, "seconds": r["seconds"],
            "seconds_all": r["seconds_all"], "compile_seconds": r["compile_seconds"],
            "rss_peak_bytes": r["rss_peak_bytes"], "xla_bytes": r["xla_bytes"],
-           "height": int(ref.shape[0]), "width": int(ref.shape[1]), **extra}
+           "height": int(ref.shape[0]), "width": int(ref.shape[1]), "buffers": read,
+           "input_relmse": float(metrics.relmse(np.asarray(buffers.color, np.float32), ref)), **extra}
     if image is not None:
         rec.update(score(image, ref))
     return rec
@@ -360,6 +383,7 @@ def summarize(records: list[dict]) -> list[dict]:
             "rss_peak_mb": rss_peak[method] / 2**20 if method in rss_peak else None,
             "xla_mb": max(xla) / 2**20 if xla else None,
             "render_seconds": float(np.median(render)) if all(x is not None for x in render) else None,
+            "input_relmse": float(np.mean([r["input_relmse"] for r in rs])),
             "buffers": sorted({b for r in rs for b in r.get("buffers", [])}),
             "notes": _row_notes(rs),
         })
@@ -377,13 +401,16 @@ def _row_notes(rs: list[dict]) -> list[str]:
 
 
 def markdown_table(rows: list[dict]) -> str:
-    lines = ["| method | spp | frames | RelMSE | SSIM | PSNR (dB) | time (ms, median) | compile (s) "
-             "| RSS peak MB | XLA MB | notes |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+    lines = ["| method | spp | frames | RelMSE | input RelMSE | vs input | SSIM | PSNR (dB) | time (ms, median) "
+             "| compile (s) | RSS peak MB | XLA MB | notes |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     fmt = lambda v, f, scale=1.0: "-" if v is None else format(scale * v, f)
     for r in rows:
+        ratio = r["relmse"] / r["input_relmse"] if r["input_relmse"] > 0 else float("inf")
+        vs = f"**{ratio:.3g}x: worse**" if ratio > 1 else f"{ratio:.3g}x"
         lines.append(f"| {r['method']} | {r['spp'] if r['spp'] is not None else '?'} | {r['frames']} | "
-                     f"{r['relmse']:.4g} | {r['ssim']:.4f} | {r['psnr']:.2f} | {fmt(r['seconds'], '.2f', 1e3)} | "
+                     f"{r['relmse']:.4g} | {r['input_relmse']:.4g} | {vs} | "
+                     f"{r['ssim']:.4f} | {r['psnr']:.2f} | {fmt(r['seconds'], '.2f', 1e3)} | "
                      f"{fmt(r['compile_seconds'], '.2f')} | {fmt(r['rss_peak_mb'], '.1f')} | {fmt(r.get('xla_mb'), '.1f')} | "
                      f"{'; '.join(r.get('notes', []))} |")
     return "\n".join(lines)
@@ -420,7 +447,8 @@ def report_markdown(report: dict) -> str:
           f"Data: `{cfg['data_dir']}` (relative to this report; {cfg['shots']} shot(s), "
           f"{cfg.get('sequences', 0)} sequence(s), {cfg['renders']} render(s)); "
           f"device: {cfg['device']}, {cfg['cpu_count']} cores; jax {cfg['jax']}.",
-          f"RelMSE = mean((x - ref)^2 / (ref^2 + 0.01)); SSIM and PSNR on clip(x, 0, 1)^(1/2.2); "
+          f"RelMSE = mean((x - ref)^2 / (ref^2 + 0.01)); input RelMSE = the raw input's on the same frames, "
+          f"vs input = their ratio (**worse**: the method made the image worse); SSIM and PSNR on clip(x, 0, 1)^(1/2.2); "
           f"time = median of {cfg['runs']} runs after a warm-up ({cfg.get('timing', 'on this machine')}), compile "
           f"time separate; RSS peak = the "
           f"method's largest resident-set growth over its frames, XLA = compiled program footprint "
@@ -467,10 +495,11 @@ def plot(rows: list[dict], path: str | os.PathLike) -> Path:
     from matplotlib.figure import Figure
 
     total_time = all(r["render_seconds"] is not None for r in rows)
-    fig = Figure(figsize=(6.5, 4.5), dpi=120)
+    fig = Figure(figsize=(8.0, 4.5), dpi=120)
     FigureCanvasAgg(fig)
     ax = fig.subplots()
     methods = list(dict.fromkeys(r["method"] for r in rows))
+    style = plot_styles(methods)
     floor = 1e-6  # the raw input's denoise time is ~0; keep it on a log axis
     dropped = []
     for method in methods:
@@ -485,7 +514,7 @@ def plot(rows: list[dict], path: str | os.PathLike) -> Path:
         if method == "input" and total_time and len(rs) > 1:
             ax.plot(xs, ys, "k--", marker="o", label="raw Monte Carlo (equal time)")
         else:
-            ax.plot(xs, ys, marker="o", label=method)
+            ax.plot(xs, ys, label=method, **style[method])
         for x, y, r in zip(xs, ys, rs):
             if r["spp"] is not None and len(rs) > 1:
                 ax.annotate(f"{r['spp']}", (x, y), textcoords="offset points", xytext=(3, 3), fontsize=6)
@@ -502,13 +531,26 @@ def plot(rows: list[dict], path: str | os.PathLike) -> Path:
     ax.grid(True, which="both", alpha=0.3)
     if dropped:
         ax.plot([], [], " ", label="not finite (table only): " + ", ".join(dropped))
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0)  # outside the data
     ax.set_title("error against run time" + ("" if total_time else " (render times unknown)"), fontsize=9)
     fig.tight_layout()
     path = Path(path)
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
+        fig.savefig(tmp, format="png", bbox_inches="tight")
     return path
+
+
+MARKERS = ("o", "s", "^", "D", "v", "P", "X")
+
+
+def plot_styles(methods: list[str]) -> dict[str, dict]:
+    """A colour and a marker per method, no two methods alike: 20 colours (tab20, the dark shade of
+    each hue first) against 7 markers, whose pairs repeat only after 140 methods."""
+    from matplotlib import colormaps
+
+    cmap = colormaps["tab20"]
+    order = [2 * i for i in range(10)] + [2 * i + 1 for i in range(10)]
+    return {m: {"color": cmap(order[i % 20]), "marker": MARKERS[i % len(MARKERS)]} for i, m in enumerate(methods)}
 
 
 def one_line(report: dict) -> str:

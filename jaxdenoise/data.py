@@ -5,7 +5,10 @@ is one **shot**, and every other EXR in it is a noisy **render** of that shot. A
 count is its integer ``spp`` header attribute, never a guess from its file name. Its render time
 is its ``render_seconds`` header attribute or, for data_gen output (whose EXRs keep no timings so
 they stay byte-identical across runs), the ``seconds`` of its entry in the shot's ``shot.json``
-(data_gen excludes Dr.Jit's one-off kernel compilation from it); without either it is unknown.
+(data_gen excludes Dr.Jit's one-off kernel compilation from it); without either it is unknown. Of
+that time, the gradient pass's share (``gradient_seconds``, same sources) and whether the colour
+came from it (the ``primal`` header attribute) let `bench` charge each method only the passes that
+made what it read.
 
 A **sequence** is a folder whose shots are named ``frame_0000/``, ``frame_0001/``, ... (in frame
 order); its renders are matched across frames by file name (``spp0004_00.exr`` of every frame is
@@ -34,7 +37,9 @@ _FRAME = re.compile(r"^frame_(\d+)$")
 class Render:
     path: Path
     spp: int | None
-    render_seconds: float | None
+    render_seconds: float | None  # the whole frame: every pass that made its buffers
+    gradient_seconds: float | None = None  # of which the gradient pass (dx, dy), when known
+    primal: str | None = None  # "gpt": the colour came from the gradient pass (data_gen --primal gpt)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -71,12 +76,13 @@ class Sequence:
         return sorted(common)
 
 
-def _timings(manifest: Path) -> dict[str, float | None]:
+def _timings(manifest: Path) -> dict[str, dict]:
+    """Each file's entry of a shot record (``seconds``, ``gradient_seconds``, ...)."""
     if not manifest.is_file():
         return {}
     try:
         files = json.loads(manifest.read_text()).get("files", {})
-        return {k: v.get("seconds") for k, v in files.items() if isinstance(v, dict)}
+        return {k: v for k, v in files.items() if isinstance(v, dict)}
     except (json.JSONDecodeError, AttributeError) as e:
         raise JaxdenoiseError(f"{manifest}: not a valid shot record ({e})") from None
 
@@ -97,8 +103,11 @@ def discover(data_dir: str | os.PathLike) -> list[Shot]:
             if p.name == REFERENCE or p.name.startswith("."):
                 continue
             h = read_header(p)
-            rs = h.get("render_seconds", timings.get(p.name))
-            renders.append(Render(p, h.get("spp"), float(rs) if rs is not None else None))
+            entry = timings.get(p.name, {})
+            rs = h.get("render_seconds", entry.get("seconds"))
+            gs = h.get("gradient_seconds", entry.get("gradient_seconds"))
+            renders.append(Render(p, h.get("spp"), float(rs) if rs is not None else None,
+                                  float(gs) if gs is not None else None, h.get("primal")))
         shots.append(Shot(ref.parent, ref, tuple(renders)))
     if not shots:
         raise FileNotFoundError(f"{root}: no shot found (a shot is a folder holding {REFERENCE} and noisy EXRs)")

@@ -6,9 +6,10 @@ A page keeps its prose by hand and its numbers here: every table between
     ...
     <!-- /results -->
 
-is what the renderer ``NAME`` below writes from the JSON it names, and every committed ``bench``
-report (a folder with ``results.json`` + ``config.json``) has its ``results.md`` rewritten from its
-records by `jaxdenoise.bench.report_markdown`. So a number on a page is a number in a JSON file,
+is what the renderer ``NAME`` below writes from the JSON it names; a study page an experiment writes
+whole (``STUDIES``) is what that experiment's ``page(res)`` writes from its JSON; and every committed
+``bench`` report (a folder with ``results.json`` + ``config.json``) has its ``results.md`` rewritten
+from its records by `jaxdenoise.bench.report_markdown`. So a number on a page is a number in a JSON file,
 and a page cannot keep a figure its data no longer has (``tests/test_results_pages.py`` runs
 ``--check`` in the default test run).
 
@@ -583,13 +584,39 @@ def render_page(text: str, results: Path, page: Path) -> str:
     return BLOCK.sub(sub, text)
 
 
+EXPERIMENTS = ROOT / "experiments"
+
+# Pages an experiment writes whole, with the experiment's own ``page(res) -> str`` (the function its
+# ``main`` writes the page with), from the JSON it writes beside: page -> (experiment module, JSON),
+# paths relative to the results folder.
+STUDIES: dict[str, tuple[str, str]] = {}
+
+# Pages written by hand that state no measured number of their own (they point to the pages above).
+HAND_WRITTEN: set[str] = set()
+
+
+def study_page(module: str) -> Callable[[dict], str]:
+    import importlib
+    if str(EXPERIMENTS) not in sys.path:  # the experiments import their shared helpers as `common`
+        sys.path.insert(0, str(EXPERIMENTS))
+    return importlib.import_module(module).page
+
+
 def expected(results: Path = RESULTS) -> dict[Path, str]:
     """Every generated page under ``results`` and what it should hold."""
     from jaxdenoise import bench
     out: dict[Path, str] = {}
+    for page, (module, rel) in STUDIES.items():
+        try:
+            out[results / page] = study_page(module)(load(results, rel))
+        except (KeyError, IndexError, TypeError, ValueError) as e:
+            raise PageError(f"{results / page}: experiments/{module}.py's page() on {rel}: "
+                            f"{type(e).__name__}: {e}") from None
     for page in sorted(results.rglob("*.md")):
         text = page.read_text()
         if BLOCK.search(text):
+            if page in out:
+                raise PageError(f"{page}: written whole by its experiment, yet holds result blocks")
             out[page] = render_page(text, results, page)
     for res in sorted(results.rglob("results.json")):
         if (res.parent / "config.json").exists():

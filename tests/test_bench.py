@@ -150,3 +150,44 @@ def test_records_say_which_buffers_a_method_read_and_what_it_ran_without(tmp_pat
         src = root / "scene_0001" / "spp0004_00.exr"
         assert main(["denoise", str(src), "-o", str(tmp_path / "o.exr"), "--method", "uses-albedo"]) == 0
         assert f"warning: {note}" in capsys.readouterr().err
+
+
+def test_each_method_is_charged_the_passes_that_made_what_it_read(tmp_path):
+    """A gradient frame (buffer pass 0.13 s + gradient pass 0.37 s): a plain method pays the buffer
+    pass, a gradient method both; with the G-PT primal as colour, the plain method pays both too."""
+    from jaxdenoise.io import write_buffers, write_image
+
+    ref = synthetic_frame(16, 16, seed=1).color
+    frame = synthetic_frame(16, 16, seed=2, fields=("color", "dx", "dy")).replace(spp=np.float32(4))
+    for primal, plain_time in (("base", 0.13), ("gpt", 0.5)):
+        shot = tmp_path / primal / "scene_0000"
+        shot.mkdir(parents=True)
+        write_image(shot / "reference.exr", ref)
+        write_buffers(shot / "spp0004_00.exr", frame,
+                      {"render_seconds": 0.5, "gradient_seconds": 0.37, "primal": primal})
+        report = bench.run(tmp_path / primal, ["input", "poisson-l2"], tmp_path / f"r_{primal}", runs=5, progress=False)
+        got = {r["method"]: r for r in report["records"]}
+        assert got["input"]["render_seconds"] == pytest.approx(plain_time)
+        assert got["poisson-l2"]["render_seconds"] == pytest.approx(0.5)
+        assert [r["frame_render_seconds"] for r in got.values()] == [pytest.approx(0.5)] * 2
+        # every record carries the raw input's error on its frame: the input method's own score
+        assert got["poisson-l2"]["input_relmse"] == pytest.approx(got["input"]["relmse"], rel=1e-6)
+    render = jdata.Render(tmp_path / "x.exr", 4, None, 0.37, None)
+    assert bench.charged_render_seconds(render, ["color"]) is None  # unknown stays unknown
+
+
+def test_table_shows_the_input_error_and_flags_a_method_that_made_it_worse():
+    rows = [{"method": m, "spp": 4, "frames": 1, "relmse": e, "input_relmse": 0.5, "ssim": 0.5, "psnr": 20.0,
+             "seconds": 0.01, "compile_seconds": 0.1, "rss_peak_mb": 1.0, "xla_mb": 1.0, "notes": []}
+            for m, e in (("good", 0.05), ("bad", 1.5))]
+    md = bench.markdown_table(rows)
+    assert "| good | 4 | 1 | 0.05 | 0.5 | 0.1x |" in md
+    assert "| bad | 4 | 1 | 1.5 | 0.5 | **3x: worse** |" in md
+
+
+def test_plot_styles_differ_for_every_method():
+    names = [f"m{i}" for i in range(40)]
+    styles = bench.plot_styles(names)
+    pairs = {(s["color"], s["marker"]) for s in styles.values()}
+    assert len(pairs) == len(names)
+    assert len({styles[n]["color"] for n in names[:20]}) == 20  # the first 20 also differ in colour alone
