@@ -79,9 +79,9 @@ def denoise(buffers: Buffers, method: str = "gaussian", params: Any = None, *,
     return np.asarray(out, dtype=np.float32)
 
 
-def warn_notes(m: Method, buffers: Buffers) -> None:
+def warn_notes(m: Method, buffers: Buffers, *, sequence: bool = False) -> None:
     """One `JaxdenoiseWarning` per remark on running ``m`` on ``buffers`` (`inference.notes`)."""
-    for note in notes(m, buffers):
+    for note in notes(m, buffers, sequence=sequence):
         warnings.warn(note, JaxdenoiseWarning, stacklevel=3)
 
 
@@ -99,7 +99,7 @@ def denoise_sequence(frames, method: str = "gaussian", params: Any = None, *,
         m, params = resolve(method, weights)
     frames = unstack(frames)
     if frames and isinstance(frames[0], Buffers):
-        warn_notes(m, frames[0])  # once per call: the first frame's
+        warn_notes(m, frames[0], sequence=True)  # once per call: the first frame's
     return run_all(m, params, frames)
 
 
@@ -138,7 +138,10 @@ def load(method: str, path: str | os.PathLike | None = None) -> Callable[[Buffer
     def sequence(frames):
         from .sequence import run
 
-        return run(m, params, unstack(frames))
+        frames = unstack(frames)
+        if frames:
+            warn_notes(m, frames[0], sequence=True)  # once per video: the first frame's
+        return run(m, params, frames)
 
     infer.method = m  # type: ignore[attr-defined]
     infer.params = params  # type: ignore[attr-defined]

@@ -305,7 +305,8 @@ def run(data_dir: str | os.PathLike, methods: Iterable[str], out_dir: str | os.P
                     continue
                 r = time_sequence(m, params, frames, runs=runs, names=[str(x.path) for x in renders])
                 recs = [_record(s, x, name, r, img, ref, data_dir, b, buffers_read(m, b),
-                                sequence=_relative(seq.folder, data_dir), frame=s.frame, notes=notes(m, b))
+                                sequence=_relative(seq.folder, data_dir), frame=s.frame,
+                                notes=notes(m, b, sequence=True))
                         for s, x, img, ref, b in zip(seq.shots, renders, r["images"], refs, frames)]
                 for rec, img, ref, s in zip(recs, r["images"], refs, seq.shots):
                     rec["reference_image"] = store.add(f"ref:{rec['sequence']}/{s.name}", ref)

@@ -98,7 +98,7 @@ def _denoise_frames(args: argparse.Namespace, t0: float) -> int:
         raise SystemExit(f"error: with --frames, -o/--output is a folder for every denoised frame; got {out_dir}")
     out_dir.mkdir(parents=True, exist_ok=True)
     if frames:
-        _warn(notes(m, frames[0]))
+        _warn(notes(m, frames[0], sequence=True))
     names = frame_output_names(paths)
     written = []
     for path, name, image in zip(paths, names, run(m, params, frames, names=[str(p) for p in paths])):

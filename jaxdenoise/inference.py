@@ -15,7 +15,7 @@ from .buffers import Buffers, BuffersError
 from .methods import Method, MethodError
 
 __all__ = ["Compiled", "available_memory", "check_finite", "inference_fn", "prepare", "buffers_read",
-           "missing_optional", "notes"]
+           "missing_optional", "notes", "regime"]
 
 
 def check_finite(buffers: Buffers, names, *, where: str | None = None) -> None:
@@ -124,8 +124,32 @@ def missing_optional(m: Method, buffers: Buffers) -> list[str]:
     return sorted((m.needs() - m.required()) - buffers.present())
 
 
-def notes(m: Method, buffers: Buffers) -> list[str]:
+def notes(m: Method, buffers: Buffers, *, sequence: bool = False) -> list[str]:
     """Remarks on running ``m`` on this frame, for the API's warnings and each bench record's
-    ``notes`` (one list per record): the optional buffers it runs without."""
+    ``notes`` (one list per record): the optional buffers it runs without, and where the frame lies
+    outside what its weights were trained on (`regime`). ``sequence``: the frame is part of a video
+    run through the sequence driver (a recurrent method then carries its state)."""
     lacking = missing_optional(m, buffers)
-    return [f"{m.name} ran without optional buffer(s) {lacking} it can use"] if lacking else []
+    out = [f"{m.name} ran without optional buffer(s) {lacking} it can use"] if lacking else []
+    return out + regime(m, buffers, sequence=sequence)
+
+
+def regime(m: Method, buffers: Buffers, *, sequence: bool = False) -> list[str]:
+    """Where running ``m`` here leaves the regime its configuration says it was trained in: a
+    sampling rate outside ``config.train_spps``'s range (a network trained at one rate learns that
+    rate's noise: docs/results/demc.md, rae.md), or a recurrent method trained on sequences
+    (``config.train_frames``) run on a single frame, its state starting from zero. Methods without
+    those fields (the filters, the solvers) have no trained regime."""
+    out = []
+    rates = getattr(m.config, "train_spps", None)
+    spp = buffers.spp
+    if rates and spp is not None and np.ndim(spp) == 0:
+        spp, lo, hi = float(spp), min(rates), max(rates)
+        if not lo <= spp <= hi:
+            trained = f"{lo} spp" if lo == hi else f"{lo}-{hi} spp"
+            out.append(f"{m.name} was trained at {trained}; this frame has {spp:g} spp, outside its trained rates")
+    frames = getattr(m.config, "train_frames", None)
+    if frames and frames > 1 and m.temporal == "causal" and not sequence:
+        out.append(f"{m.name} was trained on {frames}-frame sequences; run on a single frame, its recurrent "
+                   f"state starts from zero (denoise the video with the sequence driver to carry it)")
+    return out
