@@ -32,7 +32,7 @@ def _cmd_denoise(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from .api import resolve
+    from .api import AUTO, choose_method, resolve
     from .inference import inference_fn, notes, prepare
     from .fsutil import write_json
     from .io import read_buffers, write_image
@@ -42,10 +42,10 @@ def _cmd_denoise(args: argparse.Namespace) -> int:
         return _denoise_frames(args, t0)
     if args.input is None:
         raise SystemExit("error: give an input EXR, or --frames GLOB for a sequence")
-    m, params = resolve(args.method, args.weights)
     repair = "zero" if args.repair else None
     inp = Path(args.input)
     buffers, attrs = read_buffers(inp, repair=repair)
+    m, params = resolve(choose_method(buffers) if args.method == AUTO else args.method, args.weights)
     prepared = prepare(m, buffers, where=str(inp))
     _warn(notes(m, buffers))
     image = inference_fn(m)(params, prepared)
@@ -82,15 +82,15 @@ def _denoise_frames(args: argparse.Namespace, t0: float) -> int:
     """``denoise --frames GLOB -o OUT_DIR``: every frame through the sequence driver, each written."""
     import dataclasses
 
-    from .api import resolve
+    from .api import AUTO, choose_method, resolve
     from .fsutil import write_json
     from .inference import notes
     from .io import read_sequence, write_image
     from .sequence import run
 
-    m, params = resolve(args.method, args.weights)
     repair = "zero" if args.repair else None
     frames, paths = read_sequence(args.frames, repair=repair)
+    m, params = resolve(choose_method(frames[0]) if args.method == AUTO else args.method, args.weights)
     if args.input is not None and Path(args.input).resolve() not in [p.resolve() for p in paths]:
         raise SystemExit(f"error: {args.input} is not among the frames matched by --frames '{args.frames}'")
     out_dir = Path(args.output)
@@ -169,7 +169,9 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("denoise", help="denoise one EXR frame, or every frame of a sequence (--frames)")
     s.add_argument("input", nargs="?", help="noisy multi-channel EXR (R G B plus optional buffers)")
     s.add_argument("-o", "--output", required=True, help="output EXR (with --frames: output folder)")
-    s.add_argument("--method", default="gaussian")
+    s.add_argument("--method", default="auto",
+                   help="registered method (jaxdenoise methods); default 'auto': the best one the frame has "
+                        "the buffers for (gradnet on G-PT frames, demc, lbf, oidn, bilateral: docs/guide.md)")
     s.add_argument("--weights", help="folder with params.npz + config.json (default: shipped weights)")
     s.add_argument("--frames", help="glob of a sequence's frames (sorted by path = time order); every "
                                     "frame is denoised through the sequence driver and written into -o")

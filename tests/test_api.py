@@ -126,3 +126,21 @@ def test_regime_notes_say_where_a_network_runs_outside_what_it_was_trained_on():
     assert len(single) == 1 and "7-frame sequences" in single[0]
     assert notes(rae, at(1), sequence=True) == []  # in a video its state is carried
     assert notes(get("gaussian"), at(1000)) == []  # no trained regime
+
+
+def test_auto_picks_the_best_method_the_frame_has_buffers_for(monkeypatch):
+    from jaxdenoise.api import choose_method
+
+    lbf_frame = synthetic_frame(8, 8, seed=1, fields=("color", "albedo", "albedo2", "normal", "position",
+                                                      "visibility")).replace(spp=np.float32(4))
+    assert choose_method(lbf_frame) == "demc"  # demc before lbf when both could run
+    grad = synthetic_frame(8, 8, seed=1, fields=("color", "albedo", "normal", "depth", "dx", "dy"))
+    assert choose_method(grad) == "gradnet"
+    plain = synthetic_frame(8, 8, seed=1, fields=("color",))
+    assert choose_method(plain) == "oidn"
+    # without OIDN's package: the edge-aware filter if the frame has colour variance, never a blur
+    from jaxdenoise.methods import oidn
+    monkeypatch.setattr(oidn, "requirements", lambda: "no pyoidn", raising=False)
+    assert choose_method(synthetic_frame(8, 8, seed=1, fields=("color", "color_var"))) == "bilateral"
+    with pytest.raises(MethodError, match=r"method 'auto': no method of .* runs on a frame with \['color'.*install OIDN"):
+        choose_method(plain)
