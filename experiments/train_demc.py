@@ -48,7 +48,8 @@ def prepare(args) -> None:
         _link_shot(rooms / f"scene_{i:04d}", work / "val" / f"rooms_{i:04d}", ["spp0004_00.exr", "spp0004_01.exr"])
     out = {}
     for part in ("train", "val"):
-        cache = pipeline.build_cache(work / part, demc.FEATURES, work / "cache", spps=(4,), progress=True)
+        cache = pipeline.build_cache(work / part, demc.FEATURES, work / "cache", spps=(4,), progress=True,
+                                     stats=demc.frame_stats(demc.Config()))  # whole-frame position moments
         n = len(cache.frames)
         out[part] = cache.export(work / f"demc_{part}.npz", n=n, whole=True, spps=(4,))
         out[part]["frames_available"] = n

@@ -29,13 +29,34 @@ same window of 7 consecutive frames of one noisy video.
   on one frame for a few frames while the noisy input advances through that frame's other noise
   instances (sequences with several instances per frame).
 
+**Per-frame statistics** (``stats=``): a network that normalizes an input by a statistic of the
+frame (DEMC's world-position z-score, RAE's mean linear depth, GradNet's largest depth) must see it
+computed on the whole render in training too, not on the crop it is given, or it learns its
+features on a scale that inference (which gets the whole frame) never shows it. A method declares
+them (``frame_stats(config)``: ``{name: function of a whole frame's buffers -> small per-frame
+vector}``, `jaxdenoise.methods.protocol`); `build_cache` evaluates each on every whole cached
+render (its cached float32 fields, ``spp`` and camera matrices; never the reference) and stores the
+values in the index; every crop, sequence crop and whole render drawn from the cache carries them as
+extra entries ``"stat.<name>"`` (`STAT`): ``(n, k)`` for crops, ``(n, T, k)`` for sequence crops,
+one value per frame of the sequence, each frame's own. The statistics are of quantities the
+augmentations only move (positions, depths), so they pass through `augment` unchanged (backward
+playback reverses them with the frames). A method's input builder reads the carried value
+(`carried_stat`) and otherwise computes it from the array it is given, which at inference is the
+whole frame. A cache built before a statistic was declared gets it on opening, computed from the
+cached whole renders, and its index is rewritten (no EXR is decoded again); the name of a statistic
+identifies its definition (a changed definition takes a new name).
+
 **Export** (`Cache.export`, `load_export`): a fixed set of crops or sequence crops in one ``.npz``
 (float16 for radiance-like and unbounded fields, 8-bit for bounded features as Chaitanya 2017
 Sec. 3.2 stores them: normals, albedo, visibility, roughness), at most ``max_mib`` (60 by default):
 the number that fits is stated in the file and returned, so a run can move to another machine
 (`ExportedCache` samples from it with the same interface, and `render` / `subset` / ``len`` work on
 both). ``max_mib`` counts the arrays before compression. A field a method never reads can be left
-out (``leave_out``: GradNet's loss has no reference).
+out (``leave_out``: GradNet's loss has no reference). The per-frame statistics travel in the export
+(float32, exact) with each item, so a machine that trains from it gets the values of the whole
+renders; an export that lacks a statistic a method declares (one written before the method declared
+it) is refused by `open_training_data`, naming the file and the statistic: export it again (its
+items may be crops, from which the whole render's value cannot be recovered).
 """
 from __future__ import annotations
 
@@ -44,7 +65,7 @@ import hashlib
 import json
 import os
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -53,7 +74,7 @@ from .fsutil import atomic_path, write_json
 from .errors import JaxdenoiseError
 
 __all__ = ["build_cache", "Cache", "ExportedCache", "load_export", "open_training_data", "default_cache_dir", "augment", "rotate90", "flip_lr",
-           "RADIANCE", "BOUNDED"]
+           "carried_stat", "carried_stats", "RADIANCE", "BOUNDED", "STAT"]
 
 # Fields that scale with radiance (colour modulation multiplies them by m; variances by m^2).
 RADIANCE = ("color", "dx", "dy", "reference")
@@ -69,6 +90,57 @@ DERIVED_SCALARS = ("depth_linear",)
 CACHE_VERSION = 2  # 2: camera matrices in the index
 # Integer bookkeeping of a whole-render export: each render's video (-1: a single shot) and frame.
 _INDEX = ("video", "frame")
+# The key prefix under which an item carries a per-frame statistic of its whole render (module
+# docstring): ``"stat.<name>"``.
+STAT = "stat."
+# A method's per-frame statistics: name -> a function of a whole frame's buffers (a dict of its
+# fields, ``spp`` and camera matrices) returning a small vector per frame.
+FrameStats = Mapping[str, Callable[[Mapping[str, Any]], Any]]
+
+
+def carried_stat(frame: Any, name: str) -> Any:
+    """The per-frame statistic ``name`` that ``frame`` carries (``frame["stat." + name]``: an item
+    drawn by this pipeline, the value computed on its whole render), or None: a `Buffers` or a dict
+    without it, whose arrays are then the whole frame and the method computes the statistic from
+    them."""
+    return frame.get(STAT + name) if isinstance(frame, Mapping) else None
+
+
+def carried_stats(batch: Mapping[str, Any]) -> dict[str, Any]:
+    """The per-frame statistics a batch carries (its ``"stat.*"`` entries), for a method's `batch`
+    that selects the fields it passes on."""
+    return {k: v for k, v in batch.items() if k.startswith(STAT)}
+
+
+def _per_frame(f: str) -> bool:
+    """Whether an item's entry ``f`` is one value per frame (not an image to crop)."""
+    return f == "spp" or f in MATRIX_FIELDS or f.startswith(STAT)
+
+
+def _metadata(entry: dict) -> dict[str, np.ndarray]:
+    """A cached render's per-frame metadata from its index entry: ``spp`` and the camera."""
+    out = {"spp": np.float32(entry["spp"])}
+    for m in MATRIX_FIELDS:  # the frame's camera (a crop keeps it: view-space inputs need it)
+        if m in entry:
+            out[m] = np.asarray(entry[m], np.float32)
+    return out
+
+
+def _evaluate_stats(stats: FrameStats, frame: dict[str, np.ndarray], where: Any) -> dict[str, list[float]]:
+    """Every statistic of ``stats`` on one whole frame, as the index stores them (float32 values in
+    a list: exact through JSON)."""
+    out = {}
+    for name, fn in stats.items():
+        try:
+            v = np.asarray(fn(frame), np.float32)
+        except KeyError as e:
+            raise JaxdenoiseError(f"{where}: the per-frame statistic {name!r} reads {e}, which the cache does "
+                                  f"not hold (it holds {sorted(frame)})") from None
+        if v.ndim != 1:
+            raise JaxdenoiseError(f"{where}: the per-frame statistic {name!r} must be one small vector per frame, "
+                                  f"got shape {v.shape}")
+        out[name] = v.astype(np.float64).tolist()
+    return out
 
 
 def _save_npy(path: Path, array: np.ndarray) -> None:
@@ -164,7 +236,8 @@ def _key(fields: Sequence[str], files: list[Path]) -> str:
 
 def build_cache(data_dir: str | os.PathLike, fields: Sequence[str], cache_dir: str | os.PathLike, *,
                 spps: Sequence[int] | None = None, progress: bool = False,
-                fill: dict[str, float] | None = None, repair: str | None = None) -> "Cache":
+                fill: dict[str, float] | None = None, repair: str | None = None,
+                stats: FrameStats | None = None) -> "Cache":
     """Decode the renders of ``data_dir`` (those at ``spps``, or all) for ``fields`` (``color``
     first, others in the given order) into ``cache_dir`` once; reuse it when nothing changed.
     ``fill`` names the constant a method documents for a field a render left out (data_gen leaves a
@@ -172,7 +245,9 @@ def build_cache(data_dir: str | os.PathLike, fields: Sequence[str], cache_dir: s
     listed in the index. Any other missing field is an error naming the file. A render with NaN/Inf
     or negative radiance is an error naming the file and channel (`jaxdenoise.io.read_buffers`)
     unless ``repair="zero"``: then its bad values are zeroed and each frame's index entry counts them
-    (``repaired``), so that a method can drop such renders (GradNet, Sec. 5.1)."""
+    (``repaired``), so that a method can drop such renders (GradNet, Sec. 5.1). ``stats`` are the
+    method's per-frame statistics (module docstring), evaluated on every whole render and stored in
+    the index (a reused cache gets those it lacks: `Cache`)."""
     fill = dict(fill or {})
     from .data import discover, sequences
     from .io import read_buffers, read_image
@@ -192,7 +267,7 @@ def build_cache(data_dir: str | os.PathLike, fields: Sequence[str], cache_dir: s
                                     + ([] if repair is None else [f"repair:{repair}"]), files)
     index_path = folder / "index.json"
     if index_path.is_file():
-        return Cache(folder)
+        return Cache(folder, stats=stats)
     folder.mkdir(parents=True, exist_ok=True)
     it = renders
     if progress:
@@ -215,17 +290,27 @@ def build_cache(data_dir: str | os.PathLike, fields: Sequence[str], cache_dir: s
         if r.spp is None:
             raise JaxdenoiseError(f"{r.path}: no integer 'spp' header attribute")
         name = f"frame_{len(frames):06d}.npy"
-        _save_npy(folder / name, np.concatenate([np.asarray(getattr(b, f), np.float32) for f in fields], -1))
+        array = np.concatenate([np.asarray(getattr(b, f), np.float32) for f in fields], -1)
+        _save_npy(folder / name, array)
         label = f"{shot.folder.parent.name}/{shot.name}" if shot.frame is not None else shot.name
-        frames.append({"array": name, "reference": names[shot.reference], "spp": int(r.spp), "shot": label,
-                       "render": r.path.name, "sequence": str(shot.folder.parent) if shot.frame is not None else None,
-                       "frame": shot.frame, "filled": filled, "repaired": int(sum(attrs.get("repaired", {}).values())),
-                       **{m: np.asarray(getattr(b, m), np.float64).tolist() for m in MATRIX_FIELDS
-                          if getattr(b, m) is not None}})
+        entry = {"array": name, "reference": names[shot.reference], "spp": int(r.spp), "shot": label,
+                 "render": r.path.name, "sequence": str(shot.folder.parent) if shot.frame is not None else None,
+                 "frame": shot.frame, "filled": filled, "repaired": int(sum(attrs.get("repaired", {}).values())),
+                 **{m: np.asarray(getattr(b, m), np.float64).tolist() for m in MATRIX_FIELDS
+                    if getattr(b, m) is not None}}
+        if stats:
+            entry["stats"] = _evaluate_stats(stats, _whole_frame(array, _channels(fields), entry), r.path)
+        frames.append(entry)
     index = {"version": CACHE_VERSION, "fields": fields, "data_dir": str(data_dir), "frames": frames,
              "sequences": len(seqs), "shots": len(singles)}
     write_json(index_path, index)
-    return Cache(folder)
+    return Cache(folder, stats=stats)
+
+
+def _whole_frame(array: np.ndarray, slices: dict[str, slice], entry: dict) -> dict[str, np.ndarray]:
+    """A cached render whole, as the per-frame statistics read it: its fields, ``spp`` and camera
+    (never the reference: inference has none)."""
+    return {**{f: np.asarray(array[..., sl]) for f, sl in slices.items()}, **_metadata(entry)}
 
 
 def _videos(frames: list[dict]) -> list[dict[int, list[int]]]:
@@ -270,23 +355,38 @@ def _sample_sequences(videos: list[dict], item, shape, n: int, size: int, rng: n
 
 
 class Cache:
-    """A decoded cache (`build_cache`): memory-mapped arrays and crop / sequence samplers."""
+    """A decoded cache (`build_cache`): memory-mapped arrays and crop / sequence samplers. Every item
+    drawn carries the per-frame statistics of ``stats`` (module docstring; their names in
+    ``stat_names``, their values in each frame's index entry); those the index lacks (a cache built
+    before the method declared them) are computed here from the cached whole renders and the index
+    is rewritten (atomically)."""
 
-    def __init__(self, folder: str | os.PathLike) -> None:
+    def __init__(self, folder: str | os.PathLike, *, stats: FrameStats | None = None) -> None:
         self.folder = Path(folder)
-        index = json.loads((self.folder / "index.json").read_text())
+        index_path = self.folder / "index.json"
+        index = json.loads(index_path.read_text())
         self.fields: list[str] = index["fields"]
         self.frames: list[dict] = index["frames"]
         self.slices = _channels(self.fields)
         self._arrays: dict[str, np.ndarray] = {}
         self.videos = _videos(self.frames)
+        self.stat_names: tuple[str, ...] = tuple(stats or ())
+        todo = [f for f in self.frames if not set(self.stat_names) <= set(f.get("stats", {}))]
+        for f in todo:
+            lacking = {n: fn for n, fn in stats.items() if n not in f.get("stats", {})}
+            whole = _whole_frame(self.array(f["array"]), self.slices, f)
+            f["stats"] = {**f.get("stats", {}), **_evaluate_stats(lacking, whole, self.folder / f["array"])}
+        if todo:
+            try:
+                write_json(index_path, {**index, "frames": self.frames})
+            except OSError:  # a read-only cache (shared): the values hold for this process, recomputed next time
+                pass
 
     def subset(self, keep: Sequence[int]) -> "Cache":
         """The same cache restricted to the renders ``keep`` (indices into ``frames``), e.g. without
         the renders a method drops (GradNet's illegal patches)."""
-        out = Cache(self.folder)
+        out = copy.copy(self)
         out.frames = [self.frames[int(i)] for i in keep]
-        out._arrays = self._arrays
         out.videos = _videos(out.frames)
         return out
 
@@ -294,7 +394,8 @@ class Cache:
         return len(self.frames)
 
     def render(self, i: int) -> dict[str, np.ndarray]:
-        """Render ``i`` whole and unaugmented: every cached field, its reference and ``spp``."""
+        """Render ``i`` whole and unaugmented: every cached field, its reference, ``spp``, the camera
+        and the per-frame statistics."""
         h, w = self.array(self.frames[i]["array"]).shape[:2]
         return self._item(i, 0, 0, max(h, w))
 
@@ -308,17 +409,17 @@ class Cache:
         a = self.array(f["array"])[y:y + size, x:x + size]
         out = {name: np.array(a[..., sl]) for name, sl in self.slices.items()}
         out["reference"] = np.array(self.array(f["reference"])[y:y + size, x:x + size])
-        out["spp"] = np.float32(f["spp"])
-        for m in MATRIX_FIELDS:  # the frame's camera (a crop keeps it: view-space inputs need it)
-            if m in f:
-                out[m] = np.asarray(f[m], np.float32)
+        out.update(_metadata(f))
+        for n in self.stat_names:  # of the whole render, whatever the window
+            out[STAT + n] = np.asarray(f["stats"][n], np.float32)
         return out
 
     def crops(self, n: int, size: int, rng: np.random.Generator, *, spps: Sequence[int] | None = None,
               **aug: Any) -> dict[str, np.ndarray]:
         """``n`` random ``size x size`` crops (one random render each, at ``spps`` if given), augmented
         (`augment` keywords; ``augment=False`` for none), stacked: ``{field: (n, size, size, C),
-        "reference": ..., "spp": (n,)}``."""
+        "reference": ..., "spp": (n,), "stat.<name>": (n, k)}`` (the statistics of each crop's whole
+        render)."""
         pool = [i for i, f in enumerate(self.frames) if spps is None or f["spp"] in set(spps)]
         if not pool:
             raise JaxdenoiseError(f"{self.folder}: no cached render" + (f" at spp {list(spps)}" if spps else ""))
@@ -334,9 +435,10 @@ class Cache:
     def sequences(self, n: int, size: int, rng: np.random.Generator, *, frames: int = 7,
                   stop_probability: float = 0.0, max_stop: int = 3, **aug: Any) -> dict[str, np.ndarray]:
         """``n`` random ``frames``-long sequence crops ``{field: (n, frames, size, size, C), ...}`` of
-        the cached videos; with ``stop_probability`` a camera stop (module docstring) of 2..``max_stop``
-        frames is inserted, cycling through the stopped frame's noise instances (sequences whose
-        frames have one instance get none). ``reverse`` playback is on by default here."""
+        the cached videos (``"stat.<name>": (n, frames, k)``: each frame's whole-render value); with
+        ``stop_probability`` a camera stop (module docstring) of 2..``max_stop`` frames is inserted,
+        cycling through the stopped frame's noise instances (sequences whose frames have one
+        instance get none). ``reverse`` playback is on by default here."""
         return _sample_sequences(self.videos, self._item, lambda i: self.array(self.frames[i]["array"]).shape[:2],
                                  n, size, rng, frames=frames, stop_probability=stop_probability,
                                  max_stop=max_stop, aug=aug, where=self.folder)
@@ -387,7 +489,8 @@ class Cache:
         crops (validation frames; training sets small enough to travel as they are; videos keep their
         order, frames and noise instances, at most ``instances`` of each frame, so that
         `ExportedCache.sequences` samples them as `sequences` does here). ``leave_out`` names fields
-        not written, e.g. ``("reference",)`` for a method whose loss never reads one (GradNet)."""
+        not written, e.g. ``("reference",)`` for a method whose loss never reads one (GradNet). The
+        per-frame statistics the cache carries go with every item (float32)."""
         leave_out = set(leave_out)
         unknown = sorted(leave_out - {*self.fields, "reference"})
         if unknown:
@@ -416,7 +519,7 @@ class Cache:
         enc = _encode(draw(count))
         summary = {"count": count, "requested": int(n), "fit": fit, "per_item_bytes": per_item, "size": size,
                    "frames": frames, "fields": self.fields, "max_mib": max_mib, "whole": bool(whole),
-                   "instances": instances, "left_out": sorted(leave_out),
+                   "instances": instances, "left_out": sorted(leave_out), "stats": list(self.stat_names),
                    "spps": None if spps is None else [int(s) for s in spps],
                    "source": str(json.loads((self.folder / "index.json").read_text())["data_dir"])}
         enc["summary"] = np.frombuffer(json.dumps(summary).encode(), np.uint8)
@@ -444,7 +547,7 @@ def _encode(batch: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         if f in BOUNDED:
             lo, hi = BOUNDED[f]
             out[f"u8_{f}"] = np.round((np.clip(v, lo, hi) - lo) / (hi - lo) * 255).astype(np.uint8)
-        elif f == "spp" or f in MATRIX_FIELDS:
+        elif _per_frame(f):
             out[f] = np.asarray(v, np.float32)
         elif f in _INDEX:
             out[f] = np.asarray(v, np.int32)
@@ -459,13 +562,17 @@ def load_export(path: str | os.PathLike) -> "ExportedCache":
 
 
 class ExportedCache:
-    """The crops or sequence crops of an export, decoded to float32, sampled like `Cache`'s."""
+    """The crops or sequence crops of an export, decoded to float32, sampled like `Cache`'s:
+    ``items`` holds the buffers, the reference and the per-frame metadata, ``stats`` the per-frame
+    statistics by name (``(count, k)``, or ``(count, frames, k)`` for sequence crops), which every
+    item drawn carries as ``"stat.<name>"`` entries, as a cache's do."""
 
     def __init__(self, path: str | os.PathLike) -> None:
         self.path = Path(path)
         z = np.load(path)
         self.summary = json.loads(bytes(z["summary"]).decode())
         self.items: dict[str, np.ndarray] = {}
+        self.stats: dict[str, np.ndarray] = {}
         for k in z.files:
             if k.startswith("u8_"):
                 f = k[3:]
@@ -473,6 +580,8 @@ class ExportedCache:
                 self.items[f] = z[k].astype(np.float32) / 255 * (hi - lo) + lo
             elif k.startswith("f16_"):
                 self.items[k[4:]] = z[k].astype(np.float32)
+            elif k.startswith(STAT):
+                self.stats[k[len(STAT):]] = z[k].astype(np.float32)
             elif k == "spp" or k in MATRIX_FIELDS:
                 self.items[k] = z[k]
         self.index = {k: z[k] for k in _INDEX if k in z.files}
@@ -495,6 +604,7 @@ class ExportedCache:
         keep = np.asarray(keep, np.int64)
         out = copy.copy(self)
         out.items = {f: v[keep] for f, v in self.items.items()}
+        out.stats = {n: v[keep] for n, v in self.stats.items()}
         out.index = {k: v[keep] for k, v in self.index.items()}
         out.count = int(keep.size)
         out.videos = out._videos()
@@ -511,10 +621,14 @@ class ExportedCache:
         """Render ``key`` (an index, or ``(item, frame)`` of a sequence-crop export) cropped."""
         i, t = key if isinstance(key, tuple) else (key, None)
         out = {}
-        for f, v in self.items.items():
+        for f, v in self._entries().items():
             v = v[i] if t is None else v[i, t]
-            out[f] = v if f == "spp" or f in MATRIX_FIELDS else np.array(v[y:y + size, x:x + size])
+            out[f] = v if _per_frame(f) else np.array(v[y:y + size, x:x + size])
         return out
+
+    def _entries(self) -> dict[str, np.ndarray]:
+        """Every exported array under the name an item carries it by (statistics as ``stat.<name>``)."""
+        return {**self.items, **{STAT + n: v for n, v in self.stats.items()}}
 
     def _shape(self, key) -> tuple[int, int]:
         return tuple(self.items["color"].shape[-3:-1])
@@ -529,7 +643,8 @@ class ExportedCache:
     def sample(self, n: int, rng: np.random.Generator, **aug: Any) -> dict[str, np.ndarray]:
         """``n`` items drawn with replacement, each augmented (`augment` keywords)."""
         idx = rng.integers(0, self.count, size=int(n))
-        items = [{f: v[i] for f, v in self.items.items()} for i in idx]
+        entries = self._entries()
+        items = [{f: v[i] for f, v in entries.items()} for i in idx]
         return _stack([_augment_maybe(it, rng, aug) for it in items])
 
     def crops(self, n: int, size: int, rng: np.random.Generator, *, spps: Sequence[int] | None = None,
@@ -543,12 +658,12 @@ class ExportedCache:
             raise JaxdenoiseError(f"{self.path}: no exported item" + (f" at spp {list(spps)}" if spps else ""))
         h, w = self.items["color"].shape[1:3]
         c = min(int(size), h, w)
+        entries = self._entries()
         items = []
         for _ in range(int(n)):
             i = int(pool[int(rng.integers(0, pool.size))])
             y, x = int(rng.integers(0, h - c + 1)), int(rng.integers(0, w - c + 1))
-            item = {f: (v[i] if f == "spp" or f in MATRIX_FIELDS else v[i, y:y + c, x:x + c])
-                    for f, v in self.items.items()}
+            item = {f: (v[i] if _per_frame(f) else v[i, y:y + c, x:x + c]) for f, v in entries.items()}
             items.append(_augment_maybe(item, rng, aug))
         return _stack(items)
 
@@ -563,12 +678,13 @@ def default_cache_dir() -> Path:
 def open_training_data(source: str | os.PathLike, fields: Sequence[str], *, spps: Sequence[int] | None = None,
                        cache_dir: str | os.PathLike | None = None, progress: bool = False,
                        fill: dict[str, float] | None = None, reference: bool = True,
-                       repair: str | None = None) -> "Cache | ExportedCache":
-    """A data_gen folder (decoded once into a `Cache` under ``cache_dir``; ``repair`` as in
-    `build_cache`) or an export ``.npz`` (`load_export`; it must hold ``fields``, and the reference
-    unless ``reference=False``: a method whose loss never reads one): the one entry point of the
-    networks' ``make_dataset``, so the same training command runs here and on a machine that has
-    only the export."""
+                       repair: str | None = None, stats: FrameStats | None = None) -> "Cache | ExportedCache":
+    """A data_gen folder (decoded once into a `Cache` under ``cache_dir``; ``repair`` and ``stats``
+    as in `build_cache`) or an export ``.npz`` (`load_export`; it must hold ``fields``, the
+    reference unless ``reference=False`` (a method whose loss never reads one), and every per-frame
+    statistic named in ``stats``: an export without them is refused, not recomputed, since its items
+    may be crops): the one entry point of the networks' ``make_dataset``, so the same training
+    command runs here and on a machine that has only the export."""
     source = Path(source)
     if source.suffix == ".npz":
         if not source.is_file():
@@ -577,6 +693,12 @@ def open_training_data(source: str | os.PathLike, fields: Sequence[str], *, spps
         missing = [f for f in ["color", *fields, *(["reference"] if reference else [])] if f not in ex.items]
         if missing:
             raise JaxdenoiseError(f"{source}: the export lacks {missing} (it holds {sorted(ex.items)})")
+        lacking = [n for n in (stats or ()) if n not in ex.stats]
+        if lacking:
+            raise JaxdenoiseError(
+                f"{source}: the export lacks the per-frame statistic(s) {lacking} that the method computes on each "
+                f"whole render (it holds {sorted(ex.stats)}); it was written without them: export it again from "
+                "a cache opened with the method's statistics (its make_dataset)")
         return ex
     return build_cache(source, fields, cache_dir or default_cache_dir(), spps=spps, progress=progress, fill=fill,
-                       repair=repair)
+                       repair=repair, stats=stats)

@@ -4,7 +4,7 @@ Every method lives in ``jaxdenoise/methods/<module>.py`` and exposes the surface
 `jaxdenoise.methods.protocol` (required: ``Config``, ``needs``, ``init``, ``apply``; optional hook
 groups: causal ``init_state``/``step``, windowed ``window``/``prepare_frame``/``apply_window``,
 trainable ``loss``/``make_dataset``/``batch``; optional attributes ``required``, ``JITTABLE``,
-``requirements``, ``WEIGHTS``, ``TRAIN``, ``FROZEN``). `Method` answers "is it trainable /
+``requirements``, ``WEIGHTS``, ``TRAIN``, ``FROZEN``, ``frame_stats``). `Method` answers "is it trainable /
 temporal?" from those protocols, and a test checks every registered module against them.
 
 A registered name maps to a module plus config overrides, so one module serves variants

@@ -25,7 +25,11 @@ Inputs and loss (Sec. 4.2): colour compressed by Eq. 4, ``x^(1/gamma)``, gamma 2
 non-finite radiance clamped to 0 first); the 12 features z-score normalized with the training set's
 mean and standard deviation (``params["norm"]``, stored with the weights, not trained), except the
 world position, normalized per frame by default (``position_norm``; docs/methods/demc.md says why
-and what was measured); the output mapped back by ``max(y, 0)^gamma``; loss = RelMSE in HDR with
+and what was measured). The per-frame mean and standard deviation of the position are those of the
+whole frame in training as at inference: they are declared by `frame_stats`, computed by the
+training pipeline on each whole render and carried by its crops (`jaxdenoise.pipeline`), and
+`inputs` uses the carried values when given, else computes them from its array (at inference the
+whole frame). The output mapped back by ``max(y, 0)^gamma``; loss = RelMSE in HDR with
 eps = 1e-3 (Eq. 5). Xavier initialisation of the encoder, latent and fusion convs (Sec. 4.2). The
 paper's channel widths are not legible: ours are ``Config.widths`` (docs/methods/demc.md gives the
 parameter count). Any input size: padded to a multiple of 32 and cropped back.
@@ -44,9 +48,11 @@ from .. import nn
 from ..buffers import Buffers
 from ..nn.state import call
 from ..errors import JaxdenoiseError
+from ..pipeline import carried_stat, carried_stats
 
 __all__ = ["Config", "needs", "init", "init_from_data", "apply", "forward", "loss", "make_dataset", "batch",
-           "inputs", "num_params", "widths_of", "FEATURES", "TRAIN", "FROZEN", "WEIGHTS"]
+           "inputs", "frame_stats", "position_moments", "num_params", "widths_of", "FEATURES", "TRAIN", "FROZEN",
+           "WEIGHTS"]
 
 # The 12 feature channels of Sec. 3.1, in the order they are stacked.
 FEATURES: tuple[str, ...] = ("normal", "position", "albedo", "albedo2")
@@ -247,10 +253,41 @@ def forward(params: dict, x_color: jax.Array, x_feat: jax.Array, config: Config,
     return (y, updates) if train else y
 
 
+def _getter(buffers: Any):
+    return (lambda f: getattr(buffers, f)) if isinstance(buffers, Buffers) else (lambda f: buffers[f])
+
+
+def position_moments(p: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Mean and standard deviation of the world position ``(..., H, W, 3)`` over the image, per
+    channel: two ``(..., 3)`` arrays (the standard deviation with 1e-8 under the root)."""
+    mu = jnp.mean(p, axis=(-3, -2), keepdims=True)
+    sd = jnp.sqrt(jnp.mean(jnp.square(p - mu), axis=(-3, -2), keepdims=True) + 1e-8)
+    return mu[..., 0, 0, :], sd[..., 0, 0, :]
+
+
+def frame_stats(config: Config) -> dict:
+    """The per-frame statistics of `inputs` (`jaxdenoise.methods.protocol`): with ``position_norm =
+    "frame"`` the world position's mean and standard deviation over the whole frame
+    (`position_moments`), which the training pipeline computes on every whole render and carries
+    with its crops."""
+    _check(config)
+    if config.position_norm != "frame":
+        return {}
+
+    def moments(frame):  # the position as `inputs` reads it (float32, non-finite values 0)
+        p = jnp.asarray(_getter(frame)("position"), jnp.float32)
+        return position_moments(jnp.where(jnp.isfinite(p), p, 0.0))
+
+    return {"position_mean": lambda frame: moments(frame)[0], "position_std": lambda frame: moments(frame)[1]}
+
+
 def inputs(params: dict, buffers: Any, config: Config) -> tuple[jax.Array, jax.Array]:
     """Eq. 4 on the colour and the z-score of the features (Sec. 4.2) for a `Buffers` or a batch dict
-    with the same field names; any leading axes."""
-    get = (lambda f: getattr(buffers, f)) if isinstance(buffers, Buffers) else (lambda f: buffers[f])
+    with the same field names; any leading axes. The world position's per-frame mean and standard
+    deviation (``position_norm = "frame"``) are those a training crop carries (``stat.position_mean``,
+    ``stat.position_std``: its whole render's, `frame_stats`), else those of the array itself (at
+    inference, the whole frame)."""
+    get = _getter(buffers)
     color = jnp.asarray(get("color"), jnp.float32)
     color = jnp.where(jnp.isfinite(color), jnp.maximum(color, 0.0), 0.0)
     x_color = jnp.power(color, 1.0 / config.gamma)
@@ -261,8 +298,11 @@ def inputs(params: dict, buffers: Any, config: Config) -> tuple[jax.Array, jax.A
     x_feat = (feats - mean) / jnp.maximum(std, 1e-6)
     if config.position_norm == "frame":
         p = feats[..., 3:6]
-        mu = jnp.mean(p, axis=(-3, -2), keepdims=True)
-        sd = jnp.sqrt(jnp.mean(jnp.square(p - mu), axis=(-3, -2), keepdims=True) + 1e-8)
+        mu, sd = carried_stat(buffers, "position_mean"), carried_stat(buffers, "position_std")
+        if mu is None or sd is None:
+            mu, sd = position_moments(p)
+        mu = jnp.asarray(mu, jnp.float32)[..., None, None, :]
+        sd = jnp.asarray(sd, jnp.float32)[..., None, None, :]
         x_feat = x_feat.at[..., 3:6].set((p - mu) / jnp.maximum(sd, 1e-3))
     return x_color, x_feat
 
@@ -305,14 +345,16 @@ def make_dataset(data_dir, config: Config, *, progress: bool = True):
     from ..pipeline import open_training_data
 
     _check(config)
-    return open_training_data(data_dir, FEATURES, spps=config.train_spps, progress=progress)
+    return open_training_data(data_dir, FEATURES, spps=config.train_spps, progress=progress,
+                              stats=frame_stats(config))
 
 
 def batch(dataset, step: int, config: Config, rng: np.random.Generator) -> dict:
     """``train_batch`` random ``train_crop`` crops at ``train_spps``, augmented as the pipeline does
-    (quarter turns, mirror, colour modulation; world-space features unchanged)."""
+    (quarter turns, mirror, colour modulation; world-space features unchanged), with the per-frame
+    statistics of each crop's whole render (`frame_stats`)."""
     b = dataset.crops(config.train_batch, config.train_crop, rng, spps=config.train_spps)
-    return {k: b[k] for k in ("color", *FEATURES, "reference")}
+    return {**{k: b[k] for k in ("color", *FEATURES, "reference")}, **carried_stats(b)}
 
 
 def init_from_data(key, config: Config, dataset) -> dict:

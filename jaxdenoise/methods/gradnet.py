@@ -5,6 +5,10 @@ Unsupervised Deep Screened Poisson Reconstruction for Gradient-Domain Rendering"
 Inputs (Sec. 4.1, 5.1): the noisy base image ``I_b`` (``color``), the gradients ``dx``, ``dy``
 (data_gen's convention ``I[x+1] - I[x]``), and the features albedo, normal mapped by ``(N + 1)/2``,
 depth scaled linearly to [0, 1] (divided by the frame's largest finite depth): 7 feature channels.
+The largest depth is that of the whole frame in training as at inference: declared by
+`frame_stats`, computed by the training pipeline on each whole render and carried by its crops
+(`jaxdenoise.pipeline`); `inputs` uses the carried value when given, else the array's own (at
+inference, the whole frame).
 HDR images enter through the mu-law of Eq. 6 (mu = 16, sign-preserving on the gradients:
 `jaxdenoise.color.mu_law`) and the output leaves through its inverse.
 
@@ -53,9 +57,11 @@ from ..buffers import Buffers
 from ..color import inv_log_transform, inv_mu_law, log_transform, mu_law
 from ..filters import gaussian
 from ..errors import JaxdenoiseError
+from ..pipeline import carried_stat, carried_stats
 
 __all__ = ["Config", "needs", "init", "apply", "forward", "loss", "loss_terms", "make_dataset", "batch",
-           "param_groups", "group_train", "inputs", "predict", "g_branch", "features", "postprocess", "lambda_at",
+           "param_groups", "group_train", "inputs", "frame_stats", "depth_max", "predict", "g_branch",
+           "features", "postprocess", "lambda_at",
            "first_order_weights", "first_order_loss", "grad_loss", "num_params", "is_illegal", "output_terms", "TRAIN", "WEIGHTS", "FEATURES"]
 
 FEATURES: tuple[str, ...] = ("albedo", "normal", "depth")  # 3 + 3 + 1 = 7 channels (Sec. 4.3.3)
@@ -169,26 +175,42 @@ def _clean(x: jax.Array) -> jax.Array:
     return jnp.where(jnp.isfinite(x), x, 0.0)
 
 
-def features(albedo: jax.Array, normal: jax.Array, depth: jax.Array) -> jax.Array:
-    """The 7 feature channels in [0, 1] (Sec. 5.1): albedo, ``(N + 1) / 2``, depth divided by the
-    frame's largest finite depth (per frame: any leading axes)."""
+def depth_max(depth: jax.Array) -> jax.Array:
+    """The largest depth of each image ``(..., H, W, 1)`` (non-finite and negative values read as
+    0): ``(..., 1)``."""
+    return jnp.max(jnp.maximum(_clean(depth), 0.0), axis=(-3, -2, -1), keepdims=True)[..., 0, 0, :]
+
+
+def frame_stats(config: Config) -> dict:
+    """The per-frame statistics of `inputs` (`jaxdenoise.methods.protocol`): ``depth_max``, the
+    whole frame's largest depth (`depth_max`), which the training pipeline computes on every whole
+    render and carries with its crops."""
+    return {"depth_max": lambda frame: depth_max(jnp.asarray(frame["depth"], jnp.float32))}
+
+
+def features(albedo: jax.Array, normal: jax.Array, depth: jax.Array, dmax: Any = None) -> jax.Array:
+    """The 7 feature channels in [0, 1] (Sec. 5.1): albedo, ``(N + 1) / 2``, depth divided by
+    ``dmax`` (``(..., 1)``, one per image: the whole frame's `depth_max`), by default the image's own
+    largest finite depth (per image: any leading axes)."""
     albedo = jnp.clip(_clean(albedo), 0.0, None)
     normal = (jnp.clip(_clean(normal), -1.0, 1.0) + 1.0) * 0.5
+    dmax = depth_max(depth) if dmax is None else jnp.asarray(dmax, jnp.float32)
     depth = jnp.maximum(_clean(depth), 0.0)
-    dmax = jnp.max(depth, axis=(-3, -2, -1), keepdims=True)
-    depth = depth / jnp.maximum(dmax, 1e-12)
+    depth = depth / jnp.maximum(dmax[..., None, None, :], 1e-12)
     return jnp.concatenate([albedo, normal, depth], -1)
 
 
 def inputs(buffers: Any, config: Config) -> dict:
     """Compressed inputs of a `Buffers` or a batch dict: ``tb`` = T(I_b) (negative and non-finite
     radiance clamped to 0 first), ``tdx``, ``tdy`` = T(dx), T(dy) (sign-preserving), ``feat`` (7),
-    and the HDR ``base``/``dx``/``dy`` the losses compare against."""
+    and the HDR ``base``/``dx``/``dy`` the losses compare against. The depth is scaled by the largest
+    depth of a training crop's whole render where the batch carries it (``stat.depth_max``,
+    `frame_stats`), else by the array's own (at inference, the whole frame)."""
     get = (lambda f: getattr(buffers, f)) if isinstance(buffers, Buffers) else (lambda f: buffers[f])
     base = jnp.maximum(_clean(jnp.asarray(get("color"), jnp.float32)), 0.0)
     dx = _clean(jnp.asarray(get("dx"), jnp.float32))
     dy = _clean(jnp.asarray(get("dy"), jnp.float32))
-    feat = features(*(jnp.asarray(get(f), jnp.float32) for f in FEATURES))
+    feat = features(*(jnp.asarray(get(f), jnp.float32) for f in FEATURES), carried_stat(buffers, "depth_max"))
     return {"base": base, "dx": dx, "dy": dy, "feat": feat, "tb": compress(base, config),
             "tdx": compress(dx, config), "tdy": compress(dy, config)}
 
@@ -470,7 +492,7 @@ def make_dataset(data_dir, config: Config, *, progress: bool = True):
     from ..pipeline import open_training_data
 
     ds = open_training_data(data_dir, ("dx", "dy", *FEATURES), spps=config.train_spps, progress=progress,
-                            reference=False, repair="zero")
+                            reference=False, repair="zero", stats=frame_stats(config))
     spps = {float(s) for s in config.train_spps}
     frames = getattr(ds, "frames", None)  # a cache counts the values it had to zero (a folder's illegal renders)
     pool, keep = [], []
@@ -494,8 +516,9 @@ def make_dataset(data_dir, config: Config, *, progress: bool = True):
 
 def batch(dataset, step: int, config: Config, rng: np.random.Generator) -> dict:
     """``train_batch`` random ``train_crop`` crops (quarter turns, mirror, colour modulation: the
-    pipeline's augmentations keep dx, dy consistent), without the reference, and Eq. 14's lambda."""
+    pipeline's augmentations keep dx, dy consistent), without the reference, with the per-frame
+    statistics of each crop's whole render (`frame_stats`), and Eq. 14's lambda."""
     b = dataset.crops(config.train_batch, config.train_crop, rng, spps=config.train_spps)
-    out = {k: b[k] for k in ("color", "dx", "dy", *FEATURES)}
+    out = {**{k: b[k] for k in ("color", "dx", "dy", *FEATURES)}, **carried_stats(b)}
     out["lambda"] = np.float32(lambda_at(step, config))
     return out

@@ -19,7 +19,12 @@ Plain attributes, all optional: ``required(config)`` (the subset of ``needs`` a 
 default all of it), ``JITTABLE`` (False for foreign code such as OIDN), ``requirements()`` (why the
 method cannot run here, or None), ``WEIGHTS`` (shipped weights folder name, or a function of the
 config), ``TRAIN`` (the trainer's defaults), ``FROZEN`` (params stored with the weights but not
-trained), ``init_from_data``.
+trained), ``init_from_data``, ``frame_stats(config)`` (the per-frame statistics the network's
+inputs are normalized by: ``{name: function of a whole frame's buffers -> a small vector per
+frame}``; a trainable method passes them to `jaxdenoise.pipeline.open_training_data`, which
+evaluates them on every whole training render and carries them with each crop as
+``"stat.<name>"``, and its input builder uses a carried value in place of the statistic of the
+array it is given, so that a crop's inputs are the whole frame's inputs cropped).
 
 A method with none of the temporal hooks (or a `Windowed` one whose ``window`` is ``(0, 0)`` for
 its config) is run frame by frame on sequences.

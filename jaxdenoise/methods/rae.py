@@ -8,7 +8,12 @@ the linear (view-axis) depth, and the roughness; the view-space quantities come 
 camera (`jaxdenoise.view`). Our choices (docs/methods/rae.md): the demodulated colour is raised to
 the power 0.2 like the loss's images (Sec. 4.4 says the implementation "raises both the input and
 target images into power 0.2"), and the linear depth is divided by its mean over the frame's
-surface pixels (no absolute scale carries across scenes).
+surface pixels (no absolute scale carries across scenes). That mean is a statistic of each whole
+frame, in training as at inference: it is one value per frame of a sequence (each frame's own, as
+`step` computes it frame by frame at inference; not one per sequence), declared by `frame_stats`,
+computed by the training pipeline on each whole render and carried by every frame of a sequence
+crop (`jaxdenoise.pipeline`); `inputs` uses the carried value when given, else computes it from its
+array (at inference, the whole frame).
 
 Network (Sec. 4.1-4.2, Fig. 2): five encoder stages (widths 32, 43, 57, 76, 101) of a 3x3 conv and
 a recurrent block (`jaxdenoise.nn.RecurrentBlock`: a conv on the input, concatenation with the
@@ -40,9 +45,10 @@ import numpy as np
 from .. import color, nn, view
 from ..buffers import Buffers
 from ..errors import JaxdenoiseError
+from ..pipeline import carried_stat, carried_stats
 
 __all__ = ["Config", "needs", "required", "init", "apply", "init_state", "step", "loss", "run_sequence", "inputs",
-           "make_dataset", "batch",
+           "make_dataset", "batch", "frame_stats", "normalized_depth", "surface_mean",
            "loss_terms", "log_kernel", "num_params", "TRAIN", "WEIGHTS", "AUX"]
 
 # The auxiliary inputs of Sec. 3.2 and their channels (Fig. 3's ladder drops them in this order).
@@ -193,9 +199,30 @@ def _get(b, f):
     return getattr(b, f) if isinstance(b, Buffers) else b[f]
 
 
+def _linear_depth(frame: Any) -> jax.Array:
+    """The linear depth ``(..., H, W, 1)`` of a frame: ``depth_linear`` if a dict carries it already
+    derived, else from the world position and the camera (`jaxdenoise.view.linear_depth`)."""
+    if isinstance(frame, dict) and "depth_linear" in frame:
+        d = frame["depth_linear"]
+    else:
+        d = view.linear_depth(_get(frame, "position"), _get(frame, "normal"), _get(frame, "world_to_camera"))
+    return jnp.asarray(d, jnp.float32)
+
+
+def frame_stats(config: Config) -> dict:
+    """The per-frame statistics of `inputs` (`jaxdenoise.methods.protocol`): with the depth input,
+    ``depth_mean``, the mean linear depth over the whole frame's surface pixels (`surface_mean`),
+    which the training pipeline computes on every whole render (each frame of a sequence its own)
+    and carries with its crops."""
+    _check(config)
+    return {"depth_mean": lambda frame: surface_mean(_linear_depth(frame))} if "depth" in config.aux else {}
+
+
 def inputs(frame: Any, config: Config) -> jax.Array:
     """The 7 input channels (fewer with ``config.aux``) of a frame or a batch (`Buffers` or a dict
-    of the same names; a dict may carry ``normal_view`` / ``depth_linear`` already derived)."""
+    of the same names; a dict may carry ``normal_view`` / ``depth_linear`` already derived, and the
+    mean depth of each frame's whole render, ``stat.depth_mean`` (`frame_stats`), which then
+    normalizes the depth in place of the array's own)."""
     get = lambda f: _get(frame, f)
     c = jnp.asarray(get("color"), jnp.float32)
     c = jnp.where(jnp.isfinite(c), jnp.maximum(c, 0.0), 0.0)
@@ -206,9 +233,7 @@ def inputs(frame: Any, config: Config) -> jax.Array:
         nv = get("normal_view") if has("normal_view") else view.view_normals(get("normal"), get("world_to_camera"))
         parts.append(jnp.asarray(nv, jnp.float32)[..., :2])
     if "depth" in config.aux:
-        d = get("depth_linear") if has("depth_linear") else \
-            view.linear_depth(get("position"), get("normal"), get("world_to_camera"))
-        parts.append(normalized_depth(jnp.asarray(d, jnp.float32)))
+        parts.append(normalized_depth(_linear_depth(frame), carried_stat(frame, "depth_mean")))
     if "roughness" in config.aux:
         rough = get("roughness") if (has("roughness") or not isinstance(frame, dict)) else None
         if rough is None:
@@ -218,12 +243,20 @@ def inputs(frame: Any, config: Config) -> jax.Array:
     return jnp.where(jnp.isfinite(x), x, 0.0)
 
 
-def normalized_depth(d: jax.Array) -> jax.Array:
-    """Linear depth divided by its mean over the image's surface pixels (``d > 0``)."""
+def surface_mean(d: jax.Array) -> jax.Array:
+    """The mean of the linear depth ``(..., H, W, 1)`` over the image's surface pixels (``d > 0``):
+    ``(..., 1)``, 0 for an image without any."""
     hit = d > 0
     mean = jnp.sum(jnp.where(hit, d, 0.0), axis=(-3, -2), keepdims=True) / \
         jnp.maximum(jnp.sum(hit, axis=(-3, -2), keepdims=True), 1)
-    return jnp.where(hit, d / jnp.maximum(mean, 1e-12), 0.0)
+    return mean[..., 0, 0, :]
+
+
+def normalized_depth(d: jax.Array, mean: Any = None) -> jax.Array:
+    """Linear depth divided by ``mean`` (``(..., 1)``, one per image: the whole frame's
+    `surface_mean`), by default its mean over the image's own surface pixels; 0 off the surface."""
+    mean = surface_mean(d) if mean is None else jnp.asarray(mean, jnp.float32)
+    return jnp.where(d > 0, d / jnp.maximum(mean[..., None, None, :], 1e-12), 0.0)
 
 
 # An albedo below half an 8-bit step in every channel is "no texture" (ours, docs/methods/rae.md).
@@ -351,7 +384,7 @@ def make_dataset(data_dir, config: Config, *, progress: bool = True):
     _check(config)
     fields = [f for f in _SOURCE if f in needs(config)]
     return open_training_data(data_dir, fields, spps=config.train_spps, progress=progress,
-                              fill={"roughness": config.missing_roughness})
+                              fill={"roughness": config.missing_roughness}, stats=frame_stats(config))
 
 
 @functools.partial(jax.jit, static_argnums=1)
@@ -371,8 +404,9 @@ _inputs = jax.jit(inputs, static_argnums=1)
 def _derive(seq: dict, config: Config) -> dict:
     """Add the view-space inputs of a batch of crops (before augmentation: a quarter turn of the
     image then turns the view-space normal with it, `jaxdenoise.pipeline.augment`) and drop what they
-    came from."""
+    came from; the per-frame statistics of the whole renders stay."""
     out = {k: np.asarray(seq[k]) for k in ("color", "albedo", "reference", "spp")}
+    out.update({k: np.asarray(v) for k, v in carried_stats(seq).items()})
     if "roughness" in config.aux:
         out["roughness"] = np.asarray(seq["roughness"])
     cam = {k: seq[k] for k in ("normal", "position", "world_to_camera") if k in seq}
