@@ -15,6 +15,8 @@ For each scene and shift (`data_gen.gradient.render_gradients`, ``shift="replay"
 
     python experiments/bench_gradient_cost.py --size 128 --spp 16 --runs 5 --spps 4,16,64 \
         --ref-spp 2048 --out docs/results/data_gen_gradient.md
+
+Writes ``--out`` (the page; `page`: the page from the JSON alone) and the JSON beside it.
 """
 from __future__ import annotations
 
@@ -29,7 +31,9 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
 
 from data_gen.gradient import SHIFTS, render_gradients  # noqa: E402
 from data_gen.integrator import PathSettings  # noqa: E402
@@ -137,33 +141,48 @@ def main(argv=None) -> int:
 
     cmd = "python experiments/bench_gradient_cost.py " + " ".join(
         f"--{k.replace('_', '-')} {v}" for k, v in vars(args).items() if v is not None)
-    load = os.getloadavg()
+    res = {"config": vars(args), "command": cmd, "seconds": time.perf_counter() - t_start, "variant": variant,
+           "cpu_count": os.cpu_count(), "machine": platform.machine(), "load_average": os.getloadavg(), "rows": rows}
+    out = Path(args.out)
+    write_json(out.with_suffix(".json"), res)
+    # the page from the JSON as written: what the pages' check reads
+    write_text(out, page(json.loads(out.with_suffix(".json").read_text())))
+    print(f"bench_gradient_cost: {len(rows)} rows, wrote {out}")
+    return 0
+
+
+def page(res: dict) -> str:
+    """``data_gen_gradient.md`` from ``data_gen_gradient.json`` alone (a missing value raises, never
+    prints a hole)."""
+    try:
+        json.dumps(res, allow_nan=False)
+    except ValueError:
+        raise ValueError("data_gen_gradient.json holds a NaN or an infinity: a value that was not measured") from None
+    cfg, rows, load = res["config"], res["rows"], res["load_average"]
     lines = [
-        "## Gradient-domain buffers: replay vs reconnection shift, cost, variance, reconstruction",
+        "# Gradient-domain buffers: replay vs reconnection shift, cost, variance, reconstruction",
         "",
-        f"Reproduce: `{cmd}` ({time.perf_counter() - t_start:.0f} s).",
+        "| scene | shift | time ratio | var ratio dx / dy | median px ratio dx / dy | reconnected | half-vector | failed |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        if r["shift"] == "replay" and r["shift_stats"] is None:
+            fr = "- | - | -"  # replay has no reconnection
+        else:
+            st = r["shift_stats"]
+            fr = f"{st['reconnected']:.3f} | {st['half_vector']:.3f} | {st['failed']:.3f}"
+        lines.append(
+            f"| {r['scene']:s} | {r['shift']:s} | {r['time_ratio']:.2f} | {r['var_ratio_dx']:.3f} / {r['var_ratio_dy']:.3f} | "
+            f"{r['median_pixel_var_ratio_dx']:.4f} / {r['median_pixel_var_ratio_dy']:.4f} | {fr} |")
+    lines += [
         "",
-        f"Mitsuba variant `{variant}`, {os.cpu_count()} CPU cores, {platform.machine()}, load average at the end "
-        f"{load[0]:.2f} / {load[1]:.2f} / {load[2]:.2f} (1/5/15 min); times are medians of {args.runs} runs after a "
-        f"warm-up, in one process, at {args.size}x{args.size} and {args.spp} spp.",
         "`plain` = `render_buffers` (colour only); `gradient` = `render_gradients` (replay: base + 2 replayed "
         "paths per sample; reconnect: base + 4 offset paths). Time ratio = gradient / plain at equal spp.",
         "Variance ratio = sum(dx_var) / sum(var_a[x] + var_b[x+1]) (two independent plain renders); "
         "median = the median over pixels of the per-pixel ratio. Fractions are of all offset paths "
         "(4 per sample; an offset whose base path sees only the sky never reconnects).",
         "",
-        "| scene | shift | time ratio | var ratio dx / dy | median px ratio dx / dy | reconnected | half-vector | failed |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for r in rows:
-        st = r["shift_stats"] or {}
-        fr = (f"{st['reconnected']:.3f} | {st['half_vector']:.3f} | {st['failed']:.3f}" if st else "- | - | -")
-        lines.append(
-            f"| {r['scene']} | {r['shift']} | {r['time_ratio']:.2f} | {r['var_ratio_dx']:.3f} / {r['var_ratio_dy']:.3f} | "
-            f"{r['median_pixel_var_ratio_dx']:.4f} / {r['median_pixel_var_ratio_dy']:.4f} | {fr} |")
-    lines += [
-        "",
-        f"RelMSE against a {args.ref_spp}-spp reference (independent seed). `input` = the base image at that "
+        f"RelMSE against a {cfg['ref_spp']:d}-spp reference (independent seed). `input` = the base image at that "
         "spp; `plain @ equal time` = plain path tracing with `round(spp x time ratio)` samples (the spp "
         "in brackets), i.e. the same render time as the gradient render; solver seconds (after compilation) "
         "are not counted in render time. **Bold**: poisson-l2 below the input at equal spp / poisson-l1 "
@@ -180,16 +199,21 @@ def main(argv=None) -> int:
                 l2 = f"**{l2}**"
             if q["poisson-l1"] < q["plain_equal_time"]:
                 l1 = f"**{l1}**"
-            lines.append(f"| {r['scene']} | {r['shift']} | {q['spp']} | {q['input']:.4g} | {l2} | {l1} | "
-                         f"{q['plain_equal_time']:.4g} ({q['equal_time_spp']}) | "
+            lines.append(f"| {r['scene']:s} | {r['shift']:s} | {q['spp']:d} | {q['input']:.4g} | {l2} | {l1} | "
+                         f"{q['plain_equal_time']:.4g} ({q['equal_time_spp']:d}) | "
                          f"{q['poisson-l2_solve_s']:.2f} / {q['poisson-l1_solve_s']:.2f} |")
-    lines.append("")
-    out = Path(args.out)
-    write_text(out, "\n".join(lines))
-    write_json(out.with_suffix(".json"), {"config": vars(args), "variant": variant, "rows": rows,
-                                          "load_average": load})
-    print(f"bench_gradient_cost: {len(rows)} rows, wrote {out}")
-    return 0
+    lines += [
+        "",
+        "## Run",
+        "",
+        f"Reproduce: `{res['command']:s}` ({res['seconds']:.0f} s).",
+        "",
+        f"Mitsuba variant `{res['variant']:s}`, {res['cpu_count']:d} CPU cores, {res['machine']:s}, load average at the end "
+        f"{load[0]:.2f} / {load[1]:.2f} / {load[2]:.2f} (1/5/15 min); times are medians of {cfg['runs']:d} runs after a "
+        f"warm-up, in one process, at {cfg['size']:d}x{cfg['size']:d} and {cfg['spp']:d} spp.",
+        "",
+    ]
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":

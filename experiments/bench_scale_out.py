@@ -7,11 +7,13 @@ into fresh folders serially, on a local Dask cluster of 1 worker and of 2 worker
 each; this machine has 2 cores), repeated ``--repeats`` times in alternation; reported: the wall time
 of each (median), the overhead per task of the 1-worker cluster against the serial writer ((Dask-1
 wall - serial wall) / scenes) and the speed-up of 2 workers. Each run is a separate process, so
-Mitsuba's start-up is in every number alike. Writes ``scale_out.json`` and ``scale_out.md``.
+Mitsuba's start-up is in every number alike. Writes ``scale_out.json`` and ``scale_out.md`` (`page`:
+the page from the JSON alone).
 """
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import shutil
 import statistics
@@ -22,9 +24,14 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
 
 from jaxdenoise.fsutil import write_json, write_text  # noqa: E402
+
+
+# the modes, in the page's order: the extra arguments of `python -m data_gen dataset`
+MODES = {"serial": [], "dask local:1": ["--scheduler", "local:1"], "dask local:2": ["--scheduler", "local:2"]}
 
 
 def main() -> None:
@@ -36,13 +43,12 @@ def main() -> None:
     args = ap.parse_args()
     base = [sys.executable, "-m", "data_gen", "dataset", "--family", "mixed", "--count", str(args.count), "--res",
             str(args.res), "--spp", "4", "--ref-spp", "64", "--no-progress"]
-    modes = {"serial": [], "dask local:1": ["--scheduler", "local:1"], "dask local:2": ["--scheduler", "local:2"]}
     env = {**os.environ, "JAX_PLATFORMS": "cpu"}
-    times: dict[str, list[float]] = {m: [] for m in modes}
+    times: dict[str, list[float]] = {m: [] for m in MODES}
     load = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as tmp:
         for r in range(args.repeats):
-            for mode, extra in modes.items():
+            for mode, extra in MODES.items():
                 out = Path(tmp) / f"{mode.replace(' ', '_').replace(':', '')}_{r}"
                 t0 = time.perf_counter()
                 p = subprocess.run(base + extra + ["--out", str(out)], env=env, capture_output=True, text=True)
@@ -58,22 +64,40 @@ def main() -> None:
            "load_at_start": load, "load_at_end": os.getloadavg()[0], "cpu_count": os.cpu_count()}
     out = Path(args.out)
     write_json(out / "scale_out.json", res)
+    # the page from the JSON as written: what the pages' check reads
+    write_text(out / "scale_out.md", page(json.loads((out / "scale_out.json").read_text())))
+    print(f"scale_out: {med} -> {out / 'scale_out.md'}")
+
+
+def page(res: dict) -> str:
+    """``scale_out.md`` from ``scale_out.json`` alone (a missing value raises, never prints a hole)."""
+    try:
+        json.dumps(res, allow_nan=False)
+    except ValueError:
+        raise ValueError("scale_out.json holds a NaN or an infinity: a value that was not measured") from None
+    times, med = res["times"], res["median"]
+    repeats = {len(times[m]) for m in MODES}
+    if len(repeats) != 1:
+        raise ValueError(f"scale_out.json: the modes have different numbers of runs {sorted(repeats)}")
+    (repeats,) = repeats
     lines = ["# Scale-out: Dask against the serial writer", "",
-             f"Command: `{res['command']}`. {args.count} scenes at {args.res}x{args.res} (spp 4, 64-spp reference), "
-             f"each mode a fresh process and folder, {args.repeats} repeats in alternation; {os.cpu_count()} cores, "
-             f"load average {load:.2f} at start, {res['load_at_end']:.2f} at the end.", "",
              "| mode | wall s (median) | runs |", "|---|---:|---|"]
-    for m, v in times.items():
-        lines.append(f"| {m} | {med[m]:.1f} | {', '.join(f'{x:.1f}' for x in v)} |")
-    lines += ["", f"Overhead of a 1-worker local cluster against the serial writer: **{per_task:.2f} s per task** "
-                  f"(cluster start-up and shut-down included, spread over {args.count} tasks); 2 workers on this "
-                  f"2-core machine: {res['speedup_2_workers']:.2f}x the serial writer's speed.", "",
+    for m in MODES:
+        lines.append(f"| {m} | {med[m]:.1f} | {', '.join(f'{x:.1f}' for x in times[m])} |")
+    lines += ["", f"Overhead of a 1-worker local cluster against the serial writer: **{res['overhead_per_task_s']:.2f} s "
+                  f"per task** (cluster start-up and shut-down included, spread over {res['count']:d} tasks); 2 workers "
+                  f"on this {res['cpu_count']:d}-core machine: {res['speedup_2_workers']:.2f}x the serial writer's speed.",
+              "",
               "On a real cluster the start-up is paid once by the user's scheduler, and each task is one "
               "scene of seconds to minutes of rendering: the per-task cost that remains is Dask's "
               "scheduling (milliseconds) and the worker's Mitsuba start-up (once per worker). Recipe: "
-              "docs/data_gen.md, *Beyond one machine*.", ""]
-    write_text(out / "scale_out.md", "\n".join(lines) + "\n")
-    print(f"scale_out: {med} -> {out / 'scale_out.md'}")
+              "docs/data_gen.md, *Beyond one machine*.", "",
+              "## Run", "",
+              f"Command: `{res['command']:s}`. {res['count']:d} scenes at {res['res']:d}x{res['res']:d} (spp 4, 64-spp "
+              f"reference), each mode a fresh process and folder, {repeats} repeats in alternation; "
+              f"{res['cpu_count']:d} cores, load average {res['load_at_start']:.2f} at start, {res['load_at_end']:.2f} "
+              "at the end."]
+    return "\n".join(lines) + "\n"
 
 
 if __name__ == "__main__":

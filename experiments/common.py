@@ -6,6 +6,7 @@ Scripts put ``experiments/`` on ``sys.path`` (they run as ``python experiments/N
 """
 from __future__ import annotations
 
+import math
 import statistics
 import tarfile
 import time
@@ -61,3 +62,12 @@ def tar_folders(out: Path, name: str, folders: dict[str, Path]) -> None:
             if folder.is_dir():
                 t.add(folder, arcname=arc)
     tmp.rename(out / name)
+
+
+def num(value, spec: str = ".4g") -> str:
+    """One measured number as a result page shows it (the experiments' ``page`` functions and
+    scripts/results.py); a missing (None) or non-finite value is an error, so a page never prints
+    a hole or "nan"."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ValueError(f"expected a finite number, found {value!r}")
+    return format(value, spec)

@@ -34,6 +34,7 @@ from jaxdenoise.io import read_buffers, read_image  # noqa: E402
 from jaxdenoise.methods import get, lbf  # noqa: E402
 from jaxdenoise.methods.lbf_features import CATEGORIES  # noqa: E402
 from jaxdenoise.train import TrainConfig, load_data, train  # noqa: E402
+from common import num  # noqa: E402
 from lbf_eval import frames  # noqa: E402
 from lbf_train import link_scenes  # noqa: E402
 
@@ -114,26 +115,34 @@ def main() -> None:
               "test_spp": sorted(test_spp), "test_frames": len(tests), "steps": args.steps,
               "radius": args.radius, "input_relmse": inp, "results": results, "seconds": time.time() - t0}
     write_json(Path(args.out) / "lbf_ablation.json", result)
+    write_text(Path(args.out) / "lbf_ablation.md", page(result))
+    print(f"lbf_ablation: {len(results)} variants in {time.time() - t0:.0f} s")
+
+
+def page(res: dict) -> str:
+    """``lbf_ablation.md`` from ``lbf_ablation.json`` alone: every variant's held-out scores, then
+    the protocol and the run-to-run spread of the paper's network over its seeds."""
+    spps = [str(k) for k in res["test_spp"]]
+    rows = [f"| {r['group']} | {r['variant']} | {num(r['train_loss'])} | {num(r['test_relmse'])} | "
+            + " | ".join(num(r["test_relmse_by_spp"][k]) for k in spps) + f" | {num(r['test_ssim'], '.4f')} |"
+            for r in res["results"]]
+    window = 2 * res["radius"] + 1
+    names = res["train_scenes"]
     lines = ["# LBF claims (c) network size and (d) secondary-feature categories", "",
-             f"Command: `{result['command']}`  ",
-             f"Reduced protocol: {args.steps} RPROP steps per variant, filter window {2 * args.radius + 1}x{2 * args.radius + 1}, "
-             f"training scenes {names[0]}..{names[-1]}, {len(tests)} held-out frames at spp {sorted(test_spp)} "
-             f"(input RelMSE {inp:.4g}).", "",
              "| group | variant | train loss (Eq. 8, last 10 steps) | held-out RelMSE | "
-             + " | ".join(f"RelMSE {k} spp" for k in sorted(test_spp)) + " | held-out SSIM |",
-             "|---|---|---|---|" + "---|" * len(test_spp) + "---|"]
-    for r in results:
-        per = " | ".join(f"{r['test_relmse_by_spp'].get(str(k), float('nan')):.4g}" for k in sorted(test_spp))
-        lines.append(f"| {r['group']} | {r['variant']} | {r['train_loss']:.4g} | {r['test_relmse']:.4g} | {per} | "
-                     f"{r['test_ssim']:.4f} |")
-    paper = [r for r in results if r["variant"].startswith("hidden (10,) [paper]")]
+             + " | ".join(f"RelMSE {k} spp" for k in spps) + " | held-out SSIM |",
+             "|---|---|---|---|" + "---|" * len(spps) + "---|", *rows, "",
+             f"Reduced protocol: {res['steps']} RPROP steps per variant, filter window {window}x{window}, "
+             f"training scenes {names[0]}..{names[-1]}, {res['test_frames']} held-out frames at spp "
+             f"{res['test_spp']} (input RelMSE {num(res['input_relmse'])}).  ",
+             f"Command: `{res['command']}`"]
+    paper = [r for r in res["results"] if r["variant"].startswith("hidden (10,) [paper]")]
     if len(paper) > 1:
         rels, sss = [r["test_relmse"] for r in paper], [r["test_ssim"] for r in paper]
         lines += ["", f"Run-to-run spread of the paper's network over {len(paper)} seeds: held-out RelMSE "
-                  f"{min(rels):.4g}-{max(rels):.4g}, SSIM {min(sss):.4f}-{max(sss):.4f}. A variant's difference "
-                  "from the paper's network means something only where it leaves this range."]
-    write_text(Path(args.out) / "lbf_ablation.md", "\n".join(lines) + "\n")
-    print(f"lbf_ablation: {len(results)} variants in {time.time() - t0:.0f} s")
+                  f"{num(min(rels))}-{num(max(rels))}, SSIM {num(min(sss), '.4f')}-{num(max(sss), '.4f')}. "
+                  "A variant's difference from the paper's network means something only where it leaves this range."]
+    return "\n".join(lines) + "\n"
 
 
 if __name__ == "__main__":

@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -37,6 +38,7 @@ from jaxdenoise.data import discover, renders_by_spp  # noqa: E402
 from jaxdenoise.fsutil import write_json, write_text  # noqa: E402
 from jaxdenoise.io import read_buffers, read_image  # noqa: E402
 from jaxdenoise.methods import lbf  # noqa: E402
+from common import num  # noqa: E402
 from lbf_train import select_scenes  # noqa: E402
 
 THETA_S = (2.0, 5.0, 12.0, 30.0)  # global spatial std (pixels)
@@ -125,11 +127,12 @@ def main() -> None:
     table = []
     for s in spps:
         rs = [r for r in records if r["spp"] == s]
-        mean = lambda name, k: float(np.mean([r[name][k] for r in rs])) if all(name in r for r in rs) else float("nan")
+        mean = lambda name, k: float(np.mean([r[name][k] for r in rs]))
         entry = {"spp": s, "frames": len(rs)}
         for name in ("input", "lbf", "lbf-nlm"):
-            entry[name] = {"relmse": mean(name, "relmse"), "ssim": mean(name, "ssim")}
-        if all(f"global_s{THETA_S[0]}_f{THETA_F[0]}" in r for r in rs):
+            if all(name in r for r in rs):  # a method not scored on every frame has no mean (page: an error)
+                entry[name] = {"relmse": mean(name, "relmse"), "ssim": mean(name, "ssim")}
+        if all(f"global_s{ts}_f{tf}" in r for r in rs for ts, tf in grid):
             best = min((f"global_s{ts}_f{tf}" for ts, tf in grid), key=lambda n: mean(n, "relmse"))
             entry["global_best"] = {"setting": best, "relmse": mean(best, "relmse"), "ssim": mean(best, "ssim")}
         table.append(entry)
@@ -137,19 +140,39 @@ def main() -> None:
               "grid": {"theta_s": THETA_S, "theta_f": THETA_F}, "per_spp": table, "records": records,
               "seconds": time.time() - t0, "command": "python " + " ".join(sys.argv)}
     write_json(out / "lbf_eval.json", result)
-
-    lines = ["# LBF claims (a) and (b): held-out frames", "",
-             f"Command: `{result['command']}`  ", f"Data: `{data}` (instance 00 of each render; never used in training).  ",
-             "Mean over shots per sampling rate. RelMSE: lower is better; SSIM: higher is better.", "",
-             "| spp | frames | input RelMSE | global best RelMSE | lbf RelMSE | lbf-nlm RelMSE | input SSIM | global best SSIM | lbf SSIM | lbf-nlm SSIM | global setting |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
-    for e in table:
-        g = e.get("global_best", {"relmse": float("nan"), "ssim": float("nan"), "setting": "-"})
-        lines.append(f"| {e['spp']} | {e['frames']} | {e['input']['relmse']:.4g} | {g['relmse']:.4g} | "
-                     f"{e['lbf']['relmse']:.4g} | {e['lbf-nlm']['relmse']:.4g} | {e['input']['ssim']:.4f} | "
-                     f"{g['ssim']:.4f} | {e['lbf']['ssim']:.4f} | {e['lbf-nlm']['ssim']:.4f} | {g['setting']} |")
-    write_text(out / "lbf_eval.md", "\n".join(lines) + "\n")
+    write_text(out / "lbf_eval.md", page(result))
     print(f"lbf_eval: {len(records)} frames in {time.time() - t0:.0f} s -> {out / 'lbf_eval.md'}")
+
+
+def page(res: dict) -> str:
+    """``lbf_eval.md`` from ``lbf_eval.json`` alone: the per-rate means, then how they were made.
+    The global grid's best setting is shown at the rates whose records hold the grid's scores and
+    must be there for each of them; above them (claim (b)) the cell is "-" (not searched)."""
+    grid_spp = sorted({r["spp"] for r in res["records"] if any(k.startswith("global_") for k in r)})
+    rows = []
+    for e in res["per_spp"]:
+        g = e["global_best"] if e["spp"] in grid_spp else None
+        rows.append(f"| {e['spp']} | {e['frames']} | {num(e['input']['relmse'])} | "
+                    f"{num(g['relmse']) if g else '-'} | {num(e['lbf']['relmse'])} | {num(e['lbf-nlm']['relmse'])} | "
+                    f"{num(e['input']['ssim'], '.4f')} | {num(g['ssim'], '.4f') if g else '-'} | "
+                    f"{num(e['lbf']['ssim'], '.4f')} | {num(e['lbf-nlm']['ssim'], '.4f')} | {g['setting'] if g else '-'} |")
+    theta = lambda v: "off" if v == math.inf else f"{v:g}"  # noqa: E731
+    ts, tf = res["grid"]["theta_s"], res["grid"]["theta_f"]
+    lines = ["# LBF claims (a) and (b): held-out frames", "",
+             "| spp | frames | input RelMSE | global best RelMSE | lbf RelMSE | lbf-nlm RelMSE | input SSIM | "
+             "global best SSIM | lbf SSIM | lbf-nlm SSIM | global setting |",
+             "|---|---|---|---|---|---|---|---|---|---|---|", *rows, "",
+             "Mean over shots per sampling rate. RelMSE: lower is better; SSIM: higher is better.  ",
+             f"Global best: the same pipeline as `lbf` with one constant spatial and one constant feature "
+             f"bandwidth, the lowest mean RelMSE of the {len(ts)} x {len(tf)} grid (theta_s in "
+             f"{{{', '.join(theta(v) for v in ts)}}} px, theta_f in {{{', '.join(theta(v) for v in tf)}}}) chosen per "
+             f"sampling rate on these test frames (an oracle); searched at "
+             f"{', '.join(str(s) for s in grid_spp) or 'no'} spp" + (" only (\"-\": not searched)." if any(
+                 e["spp"] not in grid_spp for e in res["per_spp"]) else "."), "",
+             f"Command: `{res['command']}`  ",
+             f"Data: `{res['data']}` (instance 00 of each render; never used in training); weights: "
+             f"`lbf` {res['weights']['lbf']}, `lbf-nlm` {res['weights']['lbf-nlm']}."]
+    return "\n".join(lines) + "\n"
 
 
 if __name__ == "__main__":

@@ -26,7 +26,7 @@ from jaxdenoise.filters import gaussian  # noqa: E402
 from jaxdenoise.fsutil import write_json, write_text  # noqa: E402
 from jaxdenoise.io import read_buffers  # noqa: E402
 from jaxdenoise.methods import get, lbf  # noqa: E402
-from common import timed  # noqa: E402
+from common import num, timed  # noqa: E402
 
 
 def tile(b, h: int, w: int):
@@ -75,19 +75,29 @@ def main() -> None:
     res["load_avg_end"] = os.getloadavg()
     out = Path(args.out)
     write_json(out / "lbf_timing.json", res)
-    lines = ["# LBF run time on a 1200x800 frame", "", f"Command: `{res['command']}`  ",
-             f"Device: {res['device']}, {res['cpu_count']} CPU cores (shared; load average "
-             f"{res['load_avg_start'][0]:.1f} at start, {res['load_avg_end'][0]:.1f} at end). "
-             f"Median of {args.runs} runs after a warm-up; compile time separate.", "",
-             "| method | features (s) | network (s) | filter + spikes (s) | total (s) | x Gaussian blur | compile (s) |",
-             "|---|---|---|---|---|---|---|"]
+    write_text(out / "lbf_timing.md", page(res))
+
+
+def page(res: dict) -> str:
+    """``lbf_timing.md`` from ``lbf_timing.json`` alone (stages as `common.timed` writes them)."""
+    g = res["gaussian_sigma2"]
+    rows = []
     for name, r in res["methods"].items():
         comp = r["features"]["compile_s"] + r["network"]["compile_s"] + r["filter"]["compile_s"]
-        lines.append(f"| {name} | {r['features']['median_s']:.2f} | {r['network']['median_s']:.3f} | "
-                     f"{r['filter']['median_s']:.2f} | {r['total_median']:.2f} | {r['ratio_to_gaussian']:.0f} | {comp:.1f} |")
-    lines.append(f"| gaussian (sigma 2, 13x13) | - | - | {g['median_s']:.3f} | {g['median_s']:.3f} | 1 | {g['compile_s']:.1f} |")
-    lines += ["", "Paper (GTX TITAN GPU): 8.4 s total, 5 s features, 3.4 s network + filter (goal 8.4 s, stretch 3.4 s)."]
-    write_text(out / "lbf_timing.md", "\n".join(lines) + "\n")
+        rows.append(f"| {name} | {num(r['features']['median_s'], '.2f')} | {num(r['network']['median_s'], '.3f')} | "
+                    f"{num(r['filter']['median_s'], '.2f')} | {num(r['total_median'], '.2f')} | "
+                    f"{num(r['ratio_to_gaussian'], '.0f')} | {num(comp, '.1f')} |")
+    rows.append(f"| gaussian (sigma 2, 13x13) | - | - | {num(g['median_s'], '.3f')} | {num(g['median_s'], '.3f')} | 1 | "
+                f"{num(g['compile_s'], '.1f')} |")
+    lines = [f"# LBF run time on a {res['width']}x{res['height']} frame", "",
+             "| method | features (s) | network (s) | filter + spikes (s) | total (s) | x Gaussian blur | compile (s) |",
+             "|---|---|---|---|---|---|---|", *rows, "",
+             f"Median of {res['runs']} runs after a warm-up; compile time separate. Device: {res['device']}, "
+             f"{res['cpu_count']} CPU cores (shared; load average {num(res['load_avg_start'][0], '.1f')} at start, "
+             f"{num(res['load_avg_end'][0], '.1f')} at end).  ",
+             f"Command: `{res['command']}`", "",
+             "Paper (GTX TITAN GPU): 8.4 s total, 5 s features, 3.4 s network + filter (goal 8.4 s, stretch 3.4 s)."]
+    return "\n".join(lines) + "\n"
 
 
 if __name__ == "__main__":

@@ -32,6 +32,7 @@ import numpy as np  # noqa: E402
 
 from jaxdenoise import fuzz  # noqa: E402
 from jaxdenoise.fsutil import write_json, write_text  # noqa: E402
+from common import num  # noqa: E402
 
 OUTCOMES = ("ok", "named", "other", "crash", "hang")
 
@@ -168,50 +169,62 @@ def main() -> None:
     totals = collections.Counter(r["outcome"] for r in results)
     out = Path(args.out)
     report = {"command": "python " + " ".join(sys.argv), "seconds": time.time() - t0, "cases": len(results),
-              "interrupts": interrupts,
+              "timeout_s": args.timeout, "interrupts": interrupts,
               "totals": dict(totals), "by_reader_kind": {f"{a}|{b}": dict(c) for (a, b), c in table.items()},
               "messages": {k: dict(v) for k, v in messages.items()}, "tampered_weights": weights,
               "slowest_case_s": max(r["seconds"] for r in results)}
     write_json(out / "reliability.json", report)
+    write_text(out / "reliability.md", page(report))
+    print(f"reliability: {len(results)} cases, totals {dict(totals)}; tampered weights refused "
+          f"{sum(w['refused'] for w in weights)}/{len(weights)} -> {out / 'reliability.md'}")
+
+
+def page(res: dict) -> str:
+    """``reliability.md`` from ``reliability.json`` alone. Outcome counts are stored without their
+    zeros (a reader x mutation cell lists the outcomes it had); every count must add up to ``cases``."""
+    cells = {tuple(key.split("|")): c for key, c in res["by_reader_kind"].items()}
+    for where, c in [("totals", res["totals"])] + [(f"by_reader_kind {a}|{b}", c) for (a, b), c in cells.items()]:
+        if set(c) - set(OUTCOMES):
+            raise ValueError(f"reliability.json {where}: unknown outcome(s) {sorted(set(c) - set(OUTCOMES))}")
+    if sum(res["totals"].values()) != res["cases"] or sum(sum(c.values()) for c in cells.values()) != res["cases"]:
+        raise ValueError(f"reliability.json: totals {res['totals']} and by_reader_kind do not add up to {res['cases']} cases")
     lines = ["# Reliability: fuzzed readers and tampered weights", "",
-             f"Command: `{report['command']}` ({report['seconds']:.0f} s). {len(results)} cases, each in a "
-             f"worker process with a {args.timeout:.0f} s limit (slowest case {report['slowest_case_s']:.2f} s).", "",
-             "Outcome totals: " + ", ".join(f"{o} {totals.get(o, 0)}" for o in OUTCOMES) + ".", "",
-             "- *ok*: the mutated file still reads (the mutation hit bytes the reader does not use, or "
-             "values that are still valid); *named*: the project's own error (`ExrError`, `WeightsError`; "
-             "for the CLI, an `error:` line without a traceback) naming the file; *other*: anything else; "
-             "*crash* / *hang*: the worker died / did not answer.", "",
              "| reader | mutation | cases | " + " | ".join(OUTCOMES) + " |",
              "|---|---|---:|" + "---:|" * len(OUTCOMES)]
-    for (reader, kind), c in sorted(table.items()):
-        lines.append(f"| {reader} | {kind} | {sum(c.values())} | " + " | ".join(str(c.get(o, 0)) for o in OUTCOMES)
-                     + " |")
-    lines += ["", "## Distinct messages per mutation kind (file paths as FILE, numbers as N)", ""]
-    for kind in fuzz.KINDS:
-        lines.append(f"**{kind}**")
-        lines.append("")
-        for msg, n in messages.get(kind, collections.Counter()).most_common(8):
+    for (reader, kind), c in sorted(cells.items()):
+        lines.append(f"| {reader} | {kind} | {sum(c.values())} | " + " | ".join(str(c.get(o, 0)) for o in OUTCOMES) + " |")
+    lines += ["", "Outcome totals: " + ", ".join(f"{o} {res['totals'].get(o, 0)}" for o in OUTCOMES) + ".", "",
+              "- *ok*: the mutated file still reads (the mutation hit bytes the reader does not use, or "
+              "values that are still valid); *named*: the project's own error (`ExrError`, `WeightsError`; "
+              "for the CLI, an `error:` line without a traceback) naming the file; *other*: anything else; "
+              "*crash* / *hang*: the worker died / did not answer.", "",
+              f"Command: `{res['command']}` ({num(res['seconds'], '.0f')} s). {res['cases']} cases, each in a "
+              f"worker process with a {num(res['timeout_s'], '.0f')} s limit (slowest case "
+              f"{num(res['slowest_case_s'], '.2f')} s).", "",
+              "## Distinct messages per mutation kind (file paths as FILE, numbers as N)", "",
+              "The 8 most frequent of each kind (ties in message order).", ""]
+    for kind in sorted({kind for _, kind in cells}):
+        lines += [f"**{kind}**", ""]
+        for msg, n in sorted(res["messages"].get(kind, {}).items(), key=lambda m: (-m[1], m[0]))[:8]:
             lines.append(f"- ({n}) `{msg}`")
         lines.append("")
     lines += ["## Tampered weights (`jaxdenoise.load('lbf', folder)`)", "", "| case | refused, naming the folder | message |",
               "|---|---|---|"]
-    for w in weights:
-        lines.append(f"| {w['case']} | {'yes' if w['refused'] else '**no**'} | `{w['message']}` |")
+    lines += [f"| {w['case']} | {'yes' if w['refused'] else '**no**'} | `{w['message']}` |" for w in res["tampered_weights"]]
+    interrupts = res["interrupts"]
     survived = sum(r["result"] == "PASSED" for r in interrupts)
     lines += ["", f"## Interrupted work (SIGKILL, then resumed): {survived} of {len(interrupts)} cases survived", "",
-              "`tests/test_interrupts.py` (default and `slow`): `python -m data_gen dataset` killed at 40-80 % of "
-              "its run time then rerun: bit-identical EXRs to an uninterrupted run, and every file present "
-              "under its final name complete; training killed at 50-90 % and resumed: weights equal within "
-              "1e-6; `bench` killed at 50 / 80 / 95 %: no partial report file.", "",
+              "`tests/test_interrupts.py` (default and `slow`; the kill moments are its own): `python -m data_gen "
+              "dataset` killed part-way then rerun: bit-identical EXRs to an uninterrupted run, and every file "
+              "present under its final name complete; training killed part-way and resumed: weights equal within "
+              "1e-6; `bench` killed while it runs: no partial report file.", "",
               "| case | result |", "|---|---|"]
     lines += [f"| {r['case']} | {r['result']} |" for r in interrupts]
     lines += ["", "Resource limits: a header claiming 10^6 x 10^6 pixels is refused before allocation "
               "(OpenImageIO's own size limit, then ours: half the machine's memory), see the *oversized* rows; "
               "a frame whose compiled program needs more memory than is available is refused with XLA's "
               "estimate before it runs (`jaxdenoise.inference.Compiled`, tested in tests/test_api.py).", ""]
-    write_text(out / "reliability.md", "\n".join(lines) + "\n")
-    print(f"reliability: {len(results)} cases, totals {dict(totals)}; tampered weights refused "
-          f"{sum(w['refused'] for w in weights)}/{len(weights)} -> {out / 'reliability.md'}")
+    return "\n".join(lines) + "\n"
 
 
 if __name__ == "__main__":

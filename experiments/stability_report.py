@@ -30,6 +30,7 @@ from tqdm import tqdm  # noqa: E402
 
 from jaxdenoise.fsutil import write_json, write_text  # noqa: E402
 from tests.stability import cases as C  # noqa: E402
+from common import num  # noqa: E402
 
 SYMBOL = {C.OK: "ok", C.CLEAR: "clear error", C.UNAVAILABLE: "unavailable", C.FAIL: "**FAIL**"}
 WORST = [C.FAIL, C.UNAVAILABLE, C.CLEAR, C.OK]  # a cell that merges several runs shows the worst
@@ -43,20 +44,28 @@ def _merge(outcomes: list[C.Outcome]) -> C.Outcome:
     return C.Outcome(C.OK)
 
 
-def _table(rows: dict[str, dict[str, C.Outcome]], cols: list[str], first: str) -> tuple[str, list[str]]:
-    """Markdown table plus the notes (every FAIL, clear error and unavailable reason, numbered)."""
+def _table(rows: dict[str, dict[str, list]], names: list[str], cols: list[str], first: str,
+           partial: tuple[str, ...] = ()) -> tuple[str, list[str]]:
+    """Markdown table of the JSON's ``{row: {column: [status, detail]}}`` plus the notes (every FAIL,
+    clear error and unavailable reason, numbered). Every row of ``names`` has every column; a row
+    of ``partial`` runs only some ("-" in the others)."""
+    if set(rows) != set(names):
+        raise ValueError(f"rows {sorted(rows)} are not the configured {sorted(names)}")
     notes: list[str] = []
     lines = [f"| {first} | " + " | ".join(cols) + " |", "|---|" + "---|" * len(cols)]
-    for name, cells in rows.items():
+    for name in names:
+        cells = rows[name]
+        if set(cells) - set(cols):
+            raise ValueError(f"{name}: cells {sorted(set(cells) - set(cols))} outside the columns {cols}")
         out = []
         for col in cols:
-            o = cells.get(col)
-            if o is None:
-                out.append("")
+            if name in partial and col not in cells:
+                out.append("-")
                 continue
-            text = SYMBOL[o.status]
-            if o.status != C.OK:
-                notes.append(f"{name} / {col}: {o.status}: {o.detail.splitlines()[0] if o.detail else ''}")
+            status, detail = cells[col]
+            text = SYMBOL[status]
+            if status != C.OK:
+                notes.append(f"{name} / {col}: {status}: {detail.splitlines()[0] if detail else ''}")
                 text += f" [{len(notes)}]"
             out.append(text)
         lines.append(f"| {name} | " + " | ".join(out) + " |")
@@ -148,25 +157,92 @@ def main(argv: list[str] | None = None) -> int:
     bar.close()
     seconds = time.perf_counter() - t0
 
-    case_cols = [c.name for c in C.CASES]
-    m_table, m_notes = _table(m_rows, case_cols, "method")
-    f_table, f_notes = _table(f_rows, case_cols, "filter")
-    p_table, p_notes = _table(p_rows, [f"{p:g}" for p in C.PARAM_VALUES + (C.PARAM_INF,)], "filter \\ p")
-    s_table, s_notes = _table(s_rows, list(C.SOLVER_CASES), "solver")
-    b_table, b_notes = _table(s_bad, [f"alpha={a}" for a in C.BAD_ALPHAS] + ["nan_color", "inf_color", "nan_dx"],
-                              "solver")
-    all_outcomes = [o for rows in (m_rows, f_rows, p_rows, s_rows, s_bad) for r in rows.values() for o in r.values()]
-    n_fail = sum(o.status == C.FAIL for o in all_outcomes)
-    n_cells = len(all_outcomes)
-    case_list = "\n".join(f"- `{c.name}`: {c.what}" + (f" (may refuse: {c.allowed.describe()})" if c.allowed else "")
-                          for c in C.CASES)
+    config["case_descriptions"] = {c.name: c.what + (f" (may refuse: {c.allowed.describe()})" if c.allowed else "")
+                                   for c in C.CASES}
+    raw = {"config": config, "seconds": seconds,
+           "methods": {n: {c: [o.status, o.detail] for c, o in r.items()} for n, r in m_rows.items()},
+           "filters": {n: {c: [o.status, o.detail] for c, o in r.items()} for n, r in f_rows.items()},
+           "filter_params": {n: {c: [o.status, o.detail] for c, o in r.items()} for n, r in p_rows.items()},
+           "solvers": {n: {c: [o.status, o.detail] for c, o in r.items()} for n, r in s_rows.items()},
+           "solver_refusals": {n: {c: [o.status, o.detail] for c, o in r.items()} for n, r in s_bad.items()}}
+    out = Path(args.out)
+    write_json(out.with_suffix(".json"), raw)
+    write_text(out, page(raw))
+    cells = [cell for key in TABLES for row in raw[key].values() for cell in row.values()]
+    n_fail = sum(status == C.FAIL for status, _ in cells)
+    print(f"stability: {len(cells)} cells, {n_fail} FAIL, {seconds:.0f} s -> {out}")
+    return 1 if n_fail else 0
 
-    md = f"""# Numerical stability: every method, filter and solver on stiff inputs
+
+TABLES = ("methods", "filters", "filter_params", "solvers", "solver_refusals")
+
+
+def page(res: dict) -> str:
+    """``stability.md`` from ``stability.json`` alone: the tables first, then the pass rule, the
+    NaN/Inf policy and the cases (their descriptions as the run's catalogue stated them)."""
+    config = res["config"]
+    cases = config["cases"]
+    cells = [cell for key in TABLES for row in res[key].values() for cell in row.values()]
+    n_fail = sum(status == C.FAIL for status, _ in cells)
+    m_table, m_notes = _table(res["methods"], config["methods"], cases, "method")
+    f_table, f_notes = _table(res["filters"], config["filters"], cases, "filter")
+    extra = sorted(set(res["filter_params"]) - set(config["filters"]))  # rows such as `gaussian (default radius)`
+    p_table, p_notes = _table(res["filter_params"], config["filters"] + extra,
+                              [f"{p:g}" for p in config["filter_params"]], "filter \\ p", partial=tuple(extra))
+    solver_cases = [c for c in cases if any(c in r for r in res["solvers"].values())]
+    s_table, s_notes = _table(res["solvers"], config["solvers"], solver_cases, "solver")
+    refused = [f"alpha={a}" for a in config["bad_alphas"]] + [
+        c for c in cases if any(c in r for r in res["solver_refusals"].values())]
+    b_table, b_notes = _table(res["solver_refusals"], config["solvers"], refused, "solver")
+    case_list = "\n".join(f"- `{c}`: {config['case_descriptions'][c]}" for c in cases)
+    alphas = config["alphas"]
+
+    return f"""# Numerical stability: every method, filter and solver on stiff inputs
 
 Written by `{config['command']}` on {config['date']} (jax {config['jax']}, {config['machine']});
-{n_cells} cells, **{n_fail} FAIL**; {seconds:.0f} s. Gradients {'checked' if grad else 'not checked'}.
+{len(cells)} cells, **{n_fail} FAIL**; {num(res['seconds'], '.0f')} s. Gradients {'checked' if config['grad'] else 'not checked'}.
 The catalogue and the pass rule are `tests/stability/cases.py`, shared with `pytest tests/stability`
 (the default test run leaves the 7x5 and float16 cases and the gradients on 1x1 to `pytest -m slow`).
+Cells: **ok**, **clear error** (the call refused the input with the stated error), **unavailable**
+(the method cannot run here, with its reason), **FAIL**: the rules are under *Pass rule* below.
+
+## Methods (through `jaxdenoise.methods.get(name)`: `init` or shipped weights, `apply`, gradient)
+
+{m_table}
+
+{_notes(m_notes)}
+
+## Filters on the cases (every bandwidth parameter = 1)
+
+{f_table}
+
+{_notes(f_notes)}
+
+## Filters over bandwidth parameters p (cases `baseline` and `firefly_1e6`)
+
+For `gaussian` p is sigma (0 = zero bandwidth); for the bilateral / NL-means family p is every
+lambda = 1 / (2 theta^2) (0 = infinite bandwidth, 1e30 = zero bandwidth); for `remove_spikes` it is
+`n_std`. p = inf must be refused naming the parameter. The row `gaussian (default radius)` calls
+`gaussian(image, sigma)` without `radius` (default `ceil(3 sigma)`) at the one p it shows ("-": not
+run): it must return the per-channel mean or refuse naming sigma / radius.
+
+{p_table}
+
+{_notes(p_notes)}
+
+## Screened Poisson solvers, alpha in {', '.join(f'{a:g}' for a in alphas)}
+
+Each cell merges the {len(alphas)} alphas and the three gradient sets (rendered, exact, near-exact).
+
+{s_table}
+
+{_notes(s_notes)}
+
+## Screened Poisson solvers on refused inputs
+
+{b_table}
+
+{_notes(b_notes)}
 
 ## Pass rule
 
@@ -195,56 +271,7 @@ with an error naming the argument; under `jit` they cannot, so callers validate 
 ## Cases
 
 {case_list}
-
-## Methods (through `jaxdenoise.methods.get(name)`: `init` or shipped weights, `apply`, gradient)
-
-{m_table}
-
-{_notes(m_notes)}
-
-## Filters on the cases (every bandwidth parameter = 1)
-
-{f_table}
-
-{_notes(f_notes)}
-
-## Filters over bandwidth parameters p (cases `baseline` and `firefly_1e6`)
-
-For `gaussian` p is sigma (0 = zero bandwidth); for the bilateral / NL-means family p is every
-lambda = 1 / (2 theta^2) (0 = infinite bandwidth, 1e30 = zero bandwidth); for `remove_spikes` it is
-`n_std`. p = inf must be refused naming the parameter. The row `gaussian (default radius)` calls
-`gaussian(image, sigma)` without `radius` (default `ceil(3 sigma)`): it must return the per-channel
-mean or refuse naming sigma / radius.
-
-{p_table}
-
-{_notes(p_notes)}
-
-## Screened Poisson solvers, alpha in {', '.join(f'{a:g}' for a in C.ALPHAS)}
-
-Each cell merges the five alphas and the three gradient sets (rendered, exact, near-exact).
-
-{s_table}
-
-{_notes(s_notes)}
-
-## Screened Poisson solvers on refused inputs
-
-{b_table}
-
-{_notes(b_notes)}
 """
-    out = Path(args.out)
-    write_text(out, md)
-    raw = {"config": config, "seconds": seconds,
-           "methods": {n: {c: [o.status, o.detail] for c, o in r.items()} for n, r in m_rows.items()},
-           "filters": {n: {c: [o.status, o.detail] for c, o in r.items()} for n, r in f_rows.items()},
-           "filter_params": {n: {c: [o.status, o.detail] for c, o in r.items()} for n, r in p_rows.items()},
-           "solvers": {n: {c: [o.status, o.detail] for c, o in r.items()} for n, r in s_rows.items()},
-           "solver_refusals": {n: {c: [o.status, o.detail] for c, o in r.items()} for n, r in s_bad.items()}}
-    write_json(out.with_suffix(".json"), raw)
-    print(f"stability: {n_cells} cells, {n_fail} FAIL, {seconds:.0f} s -> {out}")
-    return 1 if n_fail else 0
 
 
 if __name__ == "__main__":

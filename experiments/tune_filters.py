@@ -33,6 +33,7 @@ from jaxdenoise import io, metrics
 from jaxdenoise.data import discover
 from jaxdenoise.fsutil import write_json, write_text
 from jaxdenoise.methods import bilateral as method
+from common import num
 
 GRIDS = {
     "bilateral": {
@@ -126,6 +127,35 @@ def search(frames, config: method.Config, grid: dict, passes: int) -> tuple[list
     return rows, best
 
 
+# the order a setting's axes are listed in (the JSON's keys are sorted)
+AXES = ("sigma_spatial", "sigma_color", "sigma_patch", "sigma_feature", "feature_sigmas")
+SCORES = ("stage", "relmse_mean", "relmse_median", "relmse", "seconds")
+
+
+def page(res: dict) -> str:
+    """``tune_<filter>.md`` from ``tune_<filter>.json`` alone (one filter per file): the ten best
+    configurations, then the best, the noisy input and how the search was run."""
+    (name, f), = res["filters"].items()
+    order = lambda keys: sorted(keys, key=lambda k: (AXES.index(k), k) if k in AXES else (len(AXES), k))  # noqa: E731
+    rows = []
+    for r in f["rows"][:10]:
+        setting = ", ".join(f"{k}={r[k]}" for k in order(k for k in r if k not in SCORES))
+        rows.append(f"| {r['stage']} | {setting} | {num(r['relmse_mean'], '.5g')} | {num(r['relmse_median'], '.5g')} |")
+    best = {k: f["best"][k] for k in order(k for k in f["best"] if k != "feature_sigmas")}
+    if set(f["best"]["feature_sigmas"]) != set(f["features"]):
+        raise ValueError(f"best feature_sigmas {sorted(f['best']['feature_sigmas'])} are not the features {f['features']}")
+    best["feature_sigmas"] = {k: f["best"]["feature_sigmas"][k] for k in f["features"]}
+    lines = [f"# Bandwidth search for `{name}` (training frames)", "",
+             f"## `{name}` ({len(f['frames'])} frames, {len(f['rows'])} configurations scored)", "",
+             "| stage | setting | mean RelMSE | median RelMSE |", "|---|---|---|---|", *rows, "",
+             f"Best: `{best}` (mean RelMSE {num(f['best_relmse_mean'], '.5g')})", "",
+             f"Noisy input (no filter): mean RelMSE {num(f['input_relmse_mean'], '.5g')}, "
+             f"median {num(f['input_relmse_median'], '.5g')}.", "",
+             f"Command: `python {res['command']}`", "",
+             f"Data: `{res['data']}`; window radius {res['radius']}; objective: mean RelMSE over frames.", ""]
+    return "\n".join(lines) + "\n"
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--data", required=True, help="folder of training shots (reference.exr + noisy EXRs)")
@@ -136,12 +166,9 @@ def main(argv=None) -> int:
     ap.add_argument("--passes", type=int, default=1, help="coordinate-descent sweeps of stage 2")
     a = ap.parse_args(argv)
     out = Path(a.out)
+    command = " ".join([sys.argv[0], *(sys.argv[1:] if argv is None else argv)])
     for name in a.filters.split(","):
-        result = {"data": str(Path(a.data).resolve()), "radius": a.radius, "command": " ".join(sys.argv),
-                  "filters": {}}
-        md = [f"# Bandwidth search for `{name}` (training frames)", "",
-              f"Command: `python experiments/tune_filters.py {' '.join(argv or sys.argv[1:])}`", "",
-              f"Data: `{result['data']}`; window radius {a.radius}; objective: mean RelMSE over frames.", ""]
+        result = {"data": str(Path(a.data).resolve()), "radius": a.radius, "command": command, "filters": {}}
         config = method.Config(filter=name, radius=a.radius)
         frames = load_frames(Path(a.data), config, a.limit)
         print(f"{name}: {len(frames)} frames, {np.prod([len(v) for v in GRIDS[name].values()])} grid points",
@@ -151,19 +178,11 @@ def main(argv=None) -> int:
         best_d["feature_sigmas"] = dict(zip(config.features, best.feature_sigmas))
         inp = [float(metrics.relmse(np.asarray(f["prep"]["color"]), f["ref"])) for f in frames]
         result["filters"][name] = {"frames": [f["name"] for f in frames], "grid": GRIDS[name],
-                                   "feature_sigma_grid": FEATURE_SIGMAS, "rows": rows, "best": best_d,
-                                   "best_relmse_mean": rows[0]["relmse_mean"],
-                                   "input_relmse_mean": float(np.mean(inp))}
-        md += [f"## `{name}` ({len(frames)} frames, {len(rows)} configurations scored)", "",
-               f"Noisy input (no filter): mean RelMSE {np.mean(inp):.5g}, median {np.median(inp):.5g}.", "",
-               "| stage | setting | mean RelMSE | median RelMSE |", "|---|---|---|---|"]
-        for r in rows[:10]:
-            setting = ", ".join(f"{k}={v}" for k, v in r.items()
-                                if k not in ("stage", "relmse_mean", "relmse_median", "relmse", "seconds"))
-            md.append(f"| {r['stage']} | {setting} | {r['relmse_mean']:.5g} | {r['relmse_median']:.5g} |")
-        md += ["", f"Best: `{best_d}` (mean RelMSE {rows[0]['relmse_mean']:.5g})", ""]
+                                   "feature_sigma_grid": FEATURE_SIGMAS, "features": list(config.features),
+                                   "rows": rows, "best": best_d, "best_relmse_mean": rows[0]["relmse_mean"],
+                                   "input_relmse_mean": float(np.mean(inp)), "input_relmse_median": float(np.median(inp))}
         write_json(out / f"tune_{name}.json", result)
-        write_text(out / f"tune_{name}.md", "\n".join(md) + "\n")
+        write_text(out / f"tune_{name}.md", page(result))
         print(f"tune_filters: {name} best {json.dumps(result['filters'][name]['best'])} -> {out}")
     return 0
 

@@ -33,6 +33,11 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 RESULTS = ROOT / "docs" / "results"
+EXPERIMENTS = ROOT / "experiments"
+if str(EXPERIMENTS) not in sys.path:  # the experiments' shared helpers, imported as `common` as they do
+    sys.path.insert(0, str(EXPERIMENTS))
+
+from common import num  # noqa: E402  (one number formatter for every page: a hole is an error)
 BLOCK = re.compile(r"<!-- results: (?P<name>[\w.-]+) -->\n(?P<body>.*?)<!-- /results -->", re.S)
 
 
@@ -50,13 +55,6 @@ def load(results: Path, rel: str) -> dict:
         raise PageError(f"{path}: no such result file") from None
     except json.JSONDecodeError as e:
         raise PageError(f"{path}: not valid JSON ({e})") from None
-
-
-def num(v, spec: str = ".4g") -> str:
-    """One number as a page shows it; a missing value is an error (a page never prints a hole)."""
-    if v is None or not isinstance(v, (int, float)) or (isinstance(v, float) and not math.isfinite(v)):
-        raise PageError(f"expected a finite number, found {v!r}")
-    return format(v, spec)
 
 
 def table(header: list[str], rows: list[list[str]], align: str | None = None) -> str:
@@ -360,10 +358,10 @@ def _lbf_timing(results: Path) -> str:
     d = load(results, "lbf_timing.json")
     rows = []
     for m, r in d["methods"].items():
-        rows.append([f"`{m}`", num(r["features"]["median"], ".2f"), num(r["filter"]["median"], ".2f"),
-                     num(r["network"]["median"], ".3f"), f"**{num(r['total_median'], '.1f')}**",
+        rows.append([f"`{m}`", num(r["features"]["median_s"], ".2f"), num(r["filter"]["median_s"], ".2f"),
+                     num(r["network"]["median_s"], ".3f"), f"**{num(r['total_median'], '.1f')}**",
                      f"{num(r['ratio_to_gaussian'], ',.0f')}x"])
-    g = d["gaussian_sigma2"]["median"]
+    g = d["gaussian_sigma2"]["median_s"]
     return (table([f"{d['width']}x{d['height']}, seconds (median of {d['runs']})", "features", "filter", "network",
                    "total", "vs a Gaussian blur"], rows)
             + f"\n\nThe Gaussian blur (sigma 2) of the same frame: {num(1e3 * g, '.1f')} ms. "
@@ -547,6 +545,55 @@ def _gradnet_tried(results: Path) -> str:
                  rows)
 
 
+# filters and solvers -------------------------------------------------------------------------------
+
+@renderer("filters-poisson-goals")
+def _filters_poisson_goals(results: Path) -> str:
+    """The filters / Poisson goals against the measurements of their pages' JSON (quiet runs)."""
+    f = load(results, "bench_filters.json")
+    w, h = f["size"]
+    ours, gauss = f["ours"], f["gaussian"]
+    l2 = load(results, "poisson_l2_quiet/poisson.json")["records"]
+    dct = [r for r in l2 if r.get("table") == "l2" and r["solver"] == "dct"]
+    cg = {r["alpha"]: r for r in l2 if r.get("table") == "l2" and r["solver"].startswith("cg")}
+    pair = {r["impl"]: r["seconds"] for r in l2 if r.get("table") == "dct"}
+    med = sorted(r["seconds"] for r in dct)
+    dct_median = med[len(med) // 2] if len(med) % 2 else (med[len(med) // 2 - 1] + med[len(med) // 2]) / 2
+    worst_res = max(r["residual"] for r in dct)
+    small = min(dct, key=lambda r: r["alpha"])
+    l1 = load(results, "poisson_l1_quiet/poisson.json")["records"]
+    l1 = [r for r in l1 if r.get("table") == "l1"]
+    preset = next(r for r in l1 if r["solver"] == "irls" and r["irls_iters"] == 20 and r["cg_iters"] == 50)
+    below = [r for r in l1 if r["solver"] == "admm" and r["energy_gap"] <= preset["energy_gap"]]
+    fastest = min(below, key=lambda r: r["seconds"]) if below else None
+    rows = [
+        [f"cross-bilateral {2 * f['radius'] + 1}x{2 * f['radius'] + 1}, 5 features, {w}x{h}", "<= 3.4 s",
+         f"{'met' if ours['median_s'] <= 3.4 else '**missed**'}: {num(ours['median_s'], '.1f')} s wall, "
+         f"{num(ours['median_cpu_s'], '.0f')} s CPU (median of {f['runs']})",
+         f"Gaussian on the same frame {num(gauss['median_s'], '.3f')} s; materializing filter "
+         f"({f['small']['size'][0]}x{f['small']['size'][1]}): ours {num(f['naive_small']['median_s'] / f['ours_small']['median_s'], '.1f')}x faster",
+         "`filters.md`"],
+        [f"cross-bilateral memory at {w}x{h}", "fits comfortably",
+         f"{num(ours['temp_bytes'] / 2**20, ',.0f')} MiB of XLA temporaries",
+         f"the weight tensor alone would be {num(f['target']['materialized_weight_tensor_bytes'] / 2**20, ',.0f')} MiB",
+         "`filters.md`"],
+        ["L2 by DCT at 1280x720", "<= 25 ms, residual <= 1e-5 at alpha 1e-6..1e6",
+         f"residual at most {num(worst_res, '.1e')} ({'met' if worst_res <= 1e-5 else '**missed**'}); "
+         f"{num(1e3 * dct_median, '.1f')} ms, the median of the per-alpha medians "
+         f"({'met' if dct_median <= 0.025 else '**missed**'}; range {num(1e3 * med[0], '.1f')}-{num(1e3 * med[-1], '.1f')} ms)",
+         f"jaxopt CG at alpha {small['alpha']:g}: {num(cg[small['alpha']]['seconds'] / small['seconds'], '.0f')}x the "
+         f"DCT's time, residual {num(cg[small['alpha']]['residual'], '.1e')}; `jax.scipy.fft.dctn` pair "
+         f"{num(pair['jax.scipy.fft.dctn'] / pair['jaxdenoise dct_apply (2-D Makhoul)'], '.1f')}x ours",
+         "`poisson_l2_quiet/poisson.md`"],
+        ["L1 at 1280x720, alpha 0.2", "<= 0.67 s converged",
+         f"**missed**: IRLS 20x50 preset {num(preset['seconds'], '.1f')} s at energy gap {num(preset['energy_gap'], '.1e')}"
+         + (f"; fastest ADMM at or below that gap: {fastest['iters']} iterations, {num(fastest['seconds'], '.1f')} s, "
+            f"gap {num(fastest['energy_gap'], '.1e')}" if fastest else ""),
+         "IRLS vs ADMM in the same run", "`poisson_l1_quiet/poisson.md`"],
+    ]
+    return table(["what", "goal", "measured", "peer in the same run", "page"], rows, "lllll")
+
+
 # demo ---------------------------------------------------------------------------------------------
 
 @renderer("demo-time")
@@ -584,21 +631,34 @@ def render_page(text: str, results: Path, page: Path) -> str:
     return BLOCK.sub(sub, text)
 
 
-EXPERIMENTS = ROOT / "experiments"
-
 # Pages an experiment writes whole, with the experiment's own ``page(res) -> str`` (the function its
 # ``main`` writes the page with), from the JSON it writes beside: page -> (experiment module, JSON),
 # paths relative to the results folder.
-STUDIES: dict[str, tuple[str, str]] = {}
+STUDIES: dict[str, tuple[str, str]] = {
+    "conv.md": ("bench_conv", "conv.json"),
+    "filters.md": ("bench_filters", "bench_filters.json"),
+    "poisson.md": ("bench_poisson", "poisson.json"),
+    "poisson_l1_quiet/poisson.md": ("bench_poisson", "poisson_l1_quiet/poisson.json"),
+    "poisson_l2_quiet/poisson.md": ("bench_poisson", "poisson_l2_quiet/poisson.json"),
+    "poisson_rendered/poisson.md": ("bench_poisson", "poisson_rendered/poisson.json"),
+    "data_gen_gradient.md": ("bench_gradient_cost", "data_gen_gradient.json"),
+    "data_gen.md": ("bench_data_gen", "data_gen.json"),
+    "scale_out.md": ("bench_scale_out", "scale_out.json"),
+    "lbf_timing.md": ("lbf_timing", "lbf_timing.json"),
+    "lbf_ablation.md": ("lbf_ablation", "lbf_ablation.json"),
+    "lbf_heldout/lbf_eval.md": ("lbf_eval", "lbf_heldout/lbf_eval.json"),
+    "tune_bilateral.md": ("tune_filters", "tune_bilateral.json"),
+    "tune_nlm.md": ("tune_filters", "tune_nlm.json"),
+    "reliability.md": ("reliability_report", "reliability.json"),
+    "stability.md": ("stability_report", "stability.json"),
+}
 
 # Pages written by hand that state no measured number of their own (they point to the pages above).
-HAND_WRITTEN: set[str] = set()
+HAND_WRITTEN: set[str] = set()  # none today: every page is generated or holds generated tables
 
 
 def study_page(module: str) -> Callable[[dict], str]:
     import importlib
-    if str(EXPERIMENTS) not in sys.path:  # the experiments import their shared helpers as `common`
-        sys.path.insert(0, str(EXPERIMENTS))
     return importlib.import_module(module).page
 
 
@@ -609,7 +669,7 @@ def expected(results: Path = RESULTS) -> dict[Path, str]:
     for page, (module, rel) in STUDIES.items():
         try:
             out[results / page] = study_page(module)(load(results, rel))
-        except (KeyError, IndexError, TypeError, ValueError) as e:
+        except (KeyError, IndexError, TypeError, ValueError, AttributeError) as e:
             raise PageError(f"{results / page}: experiments/{module}.py's page() on {rel}: "
                             f"{type(e).__name__}: {e}") from None
     for page in sorted(results.rglob("*.md")):

@@ -10,7 +10,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("jaxdenoise", "data_gen")
 # the verbs of the experiment scripts' command lines: every script has its own
-SCRIPT_VERBS = {"main", "run", "prepare"}
+SCRIPT_VERBS = {"main", "run", "prepare", "page"}  # page(res): the page an experiment writes from its JSON
 
 
 def _modules() -> dict[str, Path]:

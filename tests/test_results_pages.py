@@ -90,3 +90,19 @@ def test_an_unknown_table_is_an_error(copy):
     (copy / "x.md").write_text("<!-- results: nope -->\n<!-- /results -->\n")
     with pytest.raises(R.PageError, match="unknown table 'nope'"):
         R.expected(copy)
+
+
+def test_every_results_page_is_generated_from_json():
+    pages = set(R.expected())
+    hand = {R.RESULTS / p for p in R.HAND_WRITTEN}
+    loose = [p for p in R.RESULTS.rglob("*.md") if p not in pages and p not in hand]
+    assert loose == [], "a results page neither generated nor listed as hand-written"
+    for page, (module, rel) in R.STUDIES.items():  # each study page beside its JSON
+        assert (R.RESULTS / page).is_file() and (R.RESULTS / rel).is_file(), page
+
+
+def test_a_study_page_follows_its_json(copy):
+    def bump(d):
+        d["methods"]["lbf"]["total_median"] *= 2
+    _edit(copy / "lbf_timing.json", bump)
+    assert sorted(p.name for p in R.stale(copy)) == ["lbf.md", "lbf_timing.md"]  # the study and the method page
