@@ -7,7 +7,9 @@ Public API (the demo and the experiments code against it):
 - `render_shot` noisy renders + reference of one shot in the bench layout (resumable);
 - `render_sequence` camera fly-through sequences (`data_gen.sequences`); `generate_dataset` many
   procedural scenes;
-- `render_buffers` / `render_reference` the arrays themselves, without writing files.
+- `render_buffers` / `render_reference` the arrays themselves, without writing files;
+- `library`: the scene library (hand-written XML scenes, their split into train / val / eval, and
+  their fly-through cameras); its scenes are named ``library:<name>`` wherever a scene is taken.
 """
 from .integrator import FEATURES, PathSettings, derive_seed
 from .mitsuba_setup import setup_mitsuba
@@ -16,9 +18,10 @@ from .scenes import ALL_FAMILIES, FAMILIES, SceneError, build_scene, default_sce
 from .shot import plan_buffers, render_shot
 from .dataset import generate_dataset
 from .sequences import camera_path, render_sequence  # written by the gradient/sequences worker
+from . import library
 
 __all__ = [
     "ALL_FAMILIES", "FAMILIES", "FEATURES", "PathSettings", "SceneError", "build_scene", "camera_path",
-    "default_scene", "derive_seed", "describe", "generate_dataset", "load_scene", "plan_buffers",
+    "default_scene", "derive_seed", "describe", "generate_dataset", "library", "load_scene", "plan_buffers",
     "render_buffers", "render_reference", "render_sequence", "render_shot", "setup_mitsuba",
 ]

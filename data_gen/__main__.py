@@ -1,4 +1,5 @@
-"""``python -m data_gen render SCENE.xml ...`` and ``python -m data_gen dataset --family rooms ...``."""
+"""``python -m data_gen render SCENE.xml|library:NAME|default ...`` and ``python -m data_gen dataset
+--family rooms ...`` / ``dataset --library train ...`` (a split of the scene library)."""
 from __future__ import annotations
 
 import argparse
@@ -50,16 +51,24 @@ def main(argv: list[str] | None = None) -> int:
         q.add_argument("--no-progress", action="store_true")
 
     r = sub.add_parser("render", help="render one Mitsuba 3 XML scene (or 'default') into the bench layout")
-    r.add_argument("scene", help="scene XML file, or 'default' for the built-in scene")
-    r.add_argument("--width", type=int, default=None)
+    r.add_argument("scene", help="scene XML file, library:NAME (a scene of the scene library, data_gen/library), "
+                                 "or 'default' for the built-in scene")
+    r.add_argument("--width", type=int, default=None, help="film width (XML scenes: via their resx default; a "
+                                                           "library scene given one of width/height keeps its aspect)")
     r.add_argument("--height", type=int, default=None)
     r.add_argument("--frames", type=int, default=0, help="render a camera fly-through of N frames instead")
     common(r)
-    d = sub.add_parser("dataset", help="render procedural scenes into DIR/scene_XXXX + manifest.json")
-    d.add_argument("--family", default="mixed", help="rooms, objects, dof, thin, fireflies, envmap or mixed")
-    d.add_argument("--count", type=int, required=True)
+    d = sub.add_parser("dataset", help="render procedural scenes, or a split of the scene library, into "
+                                       "DIR/scene_XXXX + manifest.json")
+    d.add_argument("--family", default=None, help="rooms, objects, dof, thin, fireflies, envmap or mixed (default)")
+    d.add_argument("--library", default=None, metavar="SPLIT",
+                   help="render the scenes of this split of the scene library instead: train, val or eval")
+    d.add_argument("--count", type=int, default=None,
+                   help="number of scenes (required for a family; a library split: default all)")
     d.add_argument("--start", type=int, default=0, help="index of the first scene folder (default 0)")
-    d.add_argument("--res", type=int, default=128, help="square resolution (default 128)")
+    d.add_argument("--res", type=int, default=None, help="square resolution (default 128; library scenes: their own size)")
+    d.add_argument("--width", type=int, default=None, help="film width (overrides --res)")
+    d.add_argument("--height", type=int, default=None, help="film height (overrides --res)")
     d.add_argument("--workers", type=int, default=1, help="local worker processes (default 1)")
     d.add_argument("--scheduler", default=None,
                    help="render on Dask: 'local', 'local:N' (a local cluster of N workers) or a scheduler "
@@ -87,6 +96,7 @@ def _run(a: argparse.Namespace, argv: list[str]) -> int:
     command = "python -m data_gen " + " ".join(shlex.quote(x) for x in argv)
     t0 = time.perf_counter()
     if a.verb == "render":
+        from . import library
         from .scenes import default_scene
         from .sequences import render_sequence
         from .shot import render_shot
@@ -96,11 +106,14 @@ def _run(a: argparse.Namespace, argv: list[str]) -> int:
             a.width = a.height = None
         else:
             scene = a.scene
+            name = library.resolve(scene)  # library:NAME or the path of a library XML (unknown names raise)
+            if name is not None:
+                a.width, a.height = library.film_size(name, a.width, a.height)
         if a.frames:
             rec = render_sequence(scene, a.out, n_frames=a.frames, spp=a.spp, instances=a.instances,
                                   ref_spp=a.ref_spp, seed=a.seed, buffers=_names(a.buffers),
                                   progress=not a.no_progress, max_depth=a.max_depth, methods=_names(a.methods),
-                                  shift=a.shift, primal=a.primal)
+                                  shift=a.shift, primal=a.primal, width=a.width, height=a.height)
             frames = rec.get("frames", [])
             n = sum(len(f.get("files", {})) for f in frames)
             secs = sum(f.get("render_seconds", 0.0) for f in frames)
@@ -119,7 +132,15 @@ def _run(a: argparse.Namespace, argv: list[str]) -> int:
         return 0
     from .dataset import dataset_size_bytes, generate_dataset
 
-    m = generate_dataset(a.family, a.count, a.out, width=a.res, spp=a.spp, instances=a.instances,
+    if a.library is not None and a.family is not None:
+        raise JaxdenoiseError(f"dataset: give --family ({a.family}) or --library ({a.library}), not both")
+    if a.library is None and a.count is None:
+        raise JaxdenoiseError("dataset: --count is required with a procedural family (--family)")
+    family = None if a.library is not None else (a.family or "mixed")
+    width = a.width if a.width is not None else a.res
+    height = a.height if a.height is not None else a.res
+    m = generate_dataset(family, a.count, a.out, width=width, height=height, library=a.library,
+                         spp=a.spp, instances=a.instances,
                          ref_spp=a.ref_spp, seed=a.seed, start=a.start, workers=a.workers, max_depth=a.max_depth,
                          methods=_names(a.methods), buffers=_names(a.buffers), progress=not a.no_progress,
                          command=command, note=a.note, scheduler=a.scheduler, frames=a.frames,

@@ -1,5 +1,6 @@
-"""Procedural datasets: one folder per scene (``scene_0000/``...) in the bench layout plus a top-level
-``manifest.json`` (scene, seed, settings, spp list, files, checksums, render seconds, reference noise).
+"""Datasets: one folder per scene (``scene_0000/``...) in the bench layout plus a top-level
+``manifest.json`` (scene, seed, settings, spp list, files, checksums, render seconds, reference noise),
+of procedural scenes (a family) or of one split of the scene library (`data_gen.library`).
 
 Resumable: each scene's files are skipped when finished (`render_shot`), and the manifest is rewritten
 atomically after every scene. Scenes render in parallel with ``workers`` processes (spawned: Dr.Jit
@@ -23,17 +24,26 @@ from .jobs import render_job
 MANIFEST = "manifest.json"
 
 
-def generate_dataset(family: str, count: int, out: str | os.PathLike, *, width: int = 128,
+def generate_dataset(family: str | None, count: int | None, out: str | os.PathLike, *, width: int | None = None,
                      height: int | None = None, spp: Sequence[int] = (4,), instances: int = 1,
                      ref_spp: int = 1024, seed: int = 0, start: int = 0, workers: int = 1, max_depth: int = 8,
                      methods: Iterable[str] | None = None, buffers: Iterable[str] | None = None,
                      progress: bool = True, samples_per_pass: int = 1 << 20, command: str | None = None,
                      note: str | None = None, scheduler: str | None = None, frames: int = 0,
-                     shift: str | None = None, primal: str = "base",
+                     shift: str | None = None, primal: str = "base", library: str | None = None,
                      _stop_after: int | None = None,
                      _die_once: str | None = None) -> dict:
     """Render ``count`` procedural scenes of ``family`` (scene k uses seed ``seed + start + k`` and
-    folder ``scene_{start + k:04d}``) into ``out``; returns the manifest. ``scheduler`` (``local``,
+    folder ``scene_{start + k:04d}``) into ``out``; returns the manifest. ``width`` x ``height``:
+    default 128 x ``width``.
+
+    ``library`` (a split of the scene library: ``train``, ``val`` or ``eval``; then ``family`` is
+    None) renders that split's scenes instead, in split-file order: scene k of the split goes to
+    ``scene_{k:04d}`` with seed ``seed + k``; ``count`` (None = the rest of the split) and ``start``
+    select a slice. Each library scene renders at its own size unless ``width`` / ``height`` are
+    given (one alone keeps the scene's aspect ratio), its fly-throughs follow its own camera (``split.json``), and its record names it
+    (``library_scene``, ``split``; ``scene`` = ``library:<name>@<digest>``, so an edited scene is
+    re-rendered on resume instead of skipped). ``scheduler`` (``local``,
     ``local:N`` or a Dask scheduler address) renders one Dask task per scene instead of local
     ``workers`` (`data_gen.cluster`); the output is the same files. ``frames > 0`` renders each
     scene as a camera fly-through of that many frames (`data_gen.sequences.render_sequence`:
@@ -45,15 +55,34 @@ def generate_dataset(family: str, count: int, out: str | os.PathLike, *, width: 
 
     from .scenes import ALL_FAMILIES
 
-    if family not in ALL_FAMILIES:
-        raise JaxdenoiseError(f"family must be one of {list(ALL_FAMILIES)}, got {family!r}")
-    if not isinstance(count, int) or count < 1:
-        raise JaxdenoiseError(f"count must be an int >= 1, got {count!r}")
+    names: list[str | None]
+    if library is not None:
+        from .library import scene_names
+
+        if family is not None:
+            raise JaxdenoiseError(f"give either a family ({family!r}) or a library split ({library!r}), not both")
+        split = scene_names(library)  # raises for an unknown split, naming the splits
+        if not isinstance(start, int) or not 0 <= start < len(split):
+            raise JaxdenoiseError(f"start: library split {library!r} has {len(split)} scenes "
+                                  f"(indices 0..{len(split) - 1}), got start={start!r}")
+        count = len(split) - start if count is None else count
+        if not isinstance(count, int) or count < 1 or start + count > len(split):
+            raise JaxdenoiseError(f"count: library split {library!r} has {len(split)} scenes {split}; "
+                                  f"start={start} + count={count!r} runs past its end")
+        names = split[start:start + count]
+    else:
+        if family not in ALL_FAMILIES:
+            raise JaxdenoiseError(f"family must be one of {list(ALL_FAMILIES)}, got {family!r} "
+                                  "(or give library= a split of the scene library)")
+        if not isinstance(count, int) or count < 1:
+            raise JaxdenoiseError(f"count must be an int >= 1, got {count!r}")
+        names = [None] * count
+        width = 128 if width is None else width
     if not isinstance(workers, int) or workers < 1:
         raise JaxdenoiseError(f"workers must be an int >= 1, got {workers!r}")
     if scheduler is not None and workers != 1:
         raise JaxdenoiseError("give either workers (local processes) or scheduler (a Dask cluster), not both")
-    height = width if height is None else height
+    height = width if height is None and library is None else height
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     remove_stale_temporaries(out)  # a manifest temporary of a killed run
@@ -65,13 +94,14 @@ def generate_dataset(family: str, count: int, out: str | os.PathLike, *, width: 
            "spp": list(spp), "instances": instances, "ref_spp": ref_spp, "max_depth": max_depth,
            "methods": list(methods) if methods is not None else None,
            "buffers": list(buffers) if buffers is not None else None, "command": command, "note": note,
-           "scheduler": scheduler, "frames": int(frames), "shift": shift, "primal": primal}
+           "scheduler": scheduler, "frames": int(frames), "shift": shift, "primal": primal, "library": library}
     run_id = f"{os.getpid()}-{time.time_ns()}"
     jobs = []
-    for k in range(count):
+    for k, lib_scene in enumerate(names):
         idx = start + k
         name = f"scene_{idx:04d}"
-        jobs.append({"name": name, "dir": os.fspath(out / name), "family": family, "scene_seed": seed + idx,
+        jobs.append({"name": name, "dir": os.fspath(out / name), "family": family, "library": lib_scene,
+                     "scene_seed": seed + idx,
                      "width": width, "height": height, "spp": list(spp), "instances": instances,
                      "ref_spp": ref_spp, "methods": list(methods) if methods is not None else None,
                      "buffers": list(buffers) if buffers is not None else None, "max_depth": max_depth,

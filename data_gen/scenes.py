@@ -337,7 +337,8 @@ def check_xml(path: str | os.PathLike) -> None:
 
 
 def load_scene(scene: Any, *, width: int | None = None, height: int | None = None):
-    """A loaded ``mi.Scene`` from a scene dict, an XML path or a loaded scene.
+    """A loaded ``mi.Scene`` from a scene dict, an XML path, ``"library:<name>"`` (a scene of the
+    scene library, `data_gen.library`) or a loaded scene.
 
     ``width`` / ``height`` override the film size of dicts and XML files (XML via the
     ``resx``/``resy`` defaults when the file declares them, else by editing the loaded dict is not
@@ -348,6 +349,13 @@ def load_scene(scene: Any, *, width: int | None = None, height: int | None = Non
 
     if isinstance(scene, mi.Scene):
         return scene
+    if isinstance(scene, str) and scene.startswith("library:"):  # a scene of data_gen/library
+        from .library import LibraryError, scene_path
+
+        try:
+            scene = scene_path(scene)
+        except LibraryError as exc:
+            raise SceneError(str(exc)) from None
     if isinstance(scene, (str, os.PathLike)):
         check_xml(scene)
         kwargs = {}

@@ -178,17 +178,21 @@ def _set_camera(scene, transform) -> None:
 def render_sequence(scene: Any, out_dir: str | os.PathLike, *, n_frames: int, instances: int = 10,
                     spp: int | Iterable[int] = 1, ref_spp: int = 1024, seed: int = 0,
                     buffers: Iterable[str] | None = None, camera: Mapping[str, Any] | None = None,
-                    **shot_kwargs) -> dict:
+                    width: int | None = None, height: int | None = None, **shot_kwargs) -> dict:
     """Render a camera fly-through: ``out_dir/frame_0000/``, ... one shot folder per frame.
 
     Each frame folder holds ``reference.exr`` (``ref_spp``) and ``instances`` independent noisy
     renders per ``spp`` (``spp0001_00.exr``, ``spp0001_01.exr``, ...): the bench layout, written by
     `data_gen.render_shot` (resumable: finished frames are skipped on a re-run). The camera follows
     `camera_path` from ``camera`` (default: `camera_params` of the scene, i.e. a path starting at
-    the scene's own view). ``scene``: scene dict, XML path or loaded ``mi.Scene`` (its sensor is
-    moved during the call and put back afterwards). ``buffers`` (field names) chooses what the
-    noisy renders hold (None = every buffer the scene can vary); other keyword arguments go to
-    `render_shot` (``max_depth``, ``methods``, ``progress``, ...).
+    the scene's own view; for a scene of the scene library, named ``library:<name>`` or by its XML
+    path, the keys of its entry in ``data_gen/library/split.json`` replace the defaults, so the path
+    stays inside its room). ``scene``: scene dict, XML path, ``library:<name>`` or loaded
+    ``mi.Scene`` (its sensor is moved during the call and put back afterwards). ``width`` /
+    ``height`` set the film size of a dict or XML scene (`load_scene`). ``buffers`` (field names)
+    chooses what the noisy renders hold (None = every buffer the scene can vary); other keyword
+    arguments go to `render_shot` (``max_depth``, ``methods``, ``progress``, ``label``, ...; a
+    library scene named ``library:<name>`` is labelled ``library:<name>@<digest>``).
 
     The frame seed mixes ``seed``, the frame index and the frame's camera matrix, so a changed
     camera path re-renders a frame instead of resuming a stale one. Writes ``out_dir/sequence.json``
@@ -196,6 +200,7 @@ def render_sequence(scene: Any, out_dir: str | os.PathLike, *, n_frames: int, in
     """
     from jaxdenoise.fsutil import write_json
 
+    from . import library
     from .scenes import load_scene
     from .shot import render_shot
 
@@ -203,10 +208,19 @@ def render_sequence(scene: Any, out_dir: str | os.PathLike, *, n_frames: int, in
         raise JaxdenoiseError(f"n_frames: expected a positive integer, got {n_frames!r}")
     if isinstance(instances, bool) or not isinstance(instances, (int, np.integer)) or instances < 1:
         raise JaxdenoiseError(f"instances: expected a positive integer, got {instances!r}")
-    if "width" in shot_kwargs or "height" in shot_kwargs:
-        raise JaxdenoiseError("width/height: set the film size in the scene itself for a sequence")
-    loaded = load_scene(scene)
-    params = dict(camera) if camera is not None else camera_params(loaded)
+    if (width is not None or height is not None) and not isinstance(scene, (dict, str, os.PathLike)):
+        raise JaxdenoiseError("width/height: a loaded mitsuba.Scene keeps its film size; pass the scene dict "
+                              "or XML path (or set the size in the scene)")
+    lib_name = library.resolve(scene)  # a scene of the scene library: its own fly-through camera
+    if library.is_spec(scene):
+        shot_kwargs.setdefault("label", library.scene_label(lib_name))
+    loaded = load_scene(scene, width=width, height=height)
+    if camera is not None:
+        params = dict(camera)
+    else:
+        params = camera_params(loaded)
+        if lib_name is not None:
+            params.update(library.camera(lib_name))
     origins, targets, up = camera_positions(params, int(n_frames), int(seed))
     frames = camera_path(params, int(n_frames), int(seed))
     import mitsuba as mi

@@ -139,6 +139,10 @@ def _is_done(out_dir: Path, record: dict, name: str, key: dict) -> bool:
 
 
 def _scene_label(scene: Any) -> str:
+    from .library import is_spec, scene_label
+
+    if is_spec(scene):  # library:<name> -> library:<name>@<digest>: an edited scene is re-rendered
+        return scene_label(scene.split(":", 1)[1])
     if isinstance(scene, (str, os.PathLike)):
         return os.fspath(scene)
     if isinstance(scene, dict):
@@ -154,7 +158,7 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
                 max_depth: int = 8, rr_depth: int = 5, seed: int = 0, progress: bool = True,
                 samples_per_pass: int = DEFAULT_SAMPLES_PER_PASS, width: int | None = None,
                 height: int | None = None, shift: str | None = None, primal: str = "base",
-                _stop_after: int | None = None) -> dict:
+                label: str | None = None, _stop_after: int | None = None) -> dict:
     """Render noisy frames at every ``spp`` (``instances`` independent realizations each) and a
     ``ref_spp`` reference into ``out_dir``; return the shot's manifest record (also in ``shot.json``).
 
@@ -163,7 +167,9 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
     ``ref_spp=0`` skips the reference. Finished files are skipped (resumable).
     ``shift`` (``replay`` or ``reconnect``; None = `data_gen.gradient.DEFAULT_SHIFT`) and ``primal``
     (``base`` or ``gpt``: the colour of gradient frames is then the G-PT primal) apply to frames with
-    gradient buffers (`data_gen.gradient.render_gradients`).
+    gradient buffers (`data_gen.gradient.render_gradients`). ``label``: the scene's name in the record
+    and the resume keys (default: the XML path as given, a dict's ``__name__``, ``library:<name>@<digest>``
+    for a library scene, ``mitsuba.Scene`` for a loaded scene).
     """
     from .gradient import DEFAULT_SHIFT, PRIMALS, SHIFTS
     from jaxdenoise.buffers import Buffers
@@ -185,7 +191,7 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
     if primal not in PRIMALS or (primal == "gpt" and shift != "reconnect"):
         raise JaxdenoiseError(f"primal: expected 'base', or 'gpt' with shift='reconnect'; got {primal!r} (shift {shift!r})")
     settings = PathSettings(max_depth=int(max_depth), rr_depth=int(rr_depth))
-    label = _scene_label(scene)
+    label = _scene_label(scene) if label is None else str(label)
     loaded = load_scene(scene, width=width, height=height)
     desc = describe(loaded)
     w, h = film_size(loaded)

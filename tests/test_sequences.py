@@ -138,3 +138,21 @@ def test_render_sequence_layout_and_resume(tmp_path):
     assert {p: p.stat().st_mtime_ns for p in out.rglob("*.exr")} == mtimes
     with pytest.raises(ValueError, match="n_frames"):
         render_sequence(scene, out, n_frames=0)
+
+
+@pytest.mark.mitsuba
+def test_render_sequence_sets_the_film_size(tmp_path):
+    """width/height reach every frame (a dict or XML scene is loaded at that size)."""
+    from data_gen.scenes import default_scene
+    from data_gen.sequences import render_sequence
+    from jaxdenoise.io import read_buffers
+
+    rec = render_sequence(default_scene(width=8, height=8), tmp_path / "seq", n_frames=2, instances=1, spp=1,
+                          ref_spp=2, seed=0, buffers=["color"], progress=False, width=6, height=4)
+    assert [(f["width"], f["height"]) for f in rec["frames"]] == [(6, 4), (6, 4)]
+    b, _ = read_buffers(tmp_path / "seq" / "frame_0001" / "spp0001_00.exr")
+    assert b.color.shape == (4, 6, 3)
+    from data_gen.scenes import load_scene
+
+    with pytest.raises(ValueError, match="keeps its film size"):
+        render_sequence(load_scene(default_scene(width=8, height=8)), tmp_path / "x", n_frames=1, width=6)
