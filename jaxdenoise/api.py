@@ -94,6 +94,8 @@ def denoise(buffers: Buffers, method: str = AUTO, params: Any = None, *,
     the frame); returns a float32 numpy image."""
     if method == AUTO and isinstance(buffers, Buffers):
         method = choose_method(buffers)
+    if isinstance(method, str) and params is None and weights is None:
+        prepare(get(method), buffers)  # every missing buffer named before the shipped weights load
     if params is not None:
         m = get(method) if isinstance(method, str) else method
     else:

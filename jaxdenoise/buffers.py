@@ -149,16 +149,19 @@ class Buffers:
             return
         prefix = f"{where}: " if where else ""
         meta = [f for f in missing if f in METADATA_FIELDS]
+        bufs = [f for f in missing if f not in METADATA_FIELDS]
+        parts = []
+        if bufs:
+            parts.append(f"buffer(s) {bufs}")
         if meta:
             how = "the integer 'spp' header attribute of an EXR, or Buffers(spp=...)" if meta == ["spp"] else \
                 ("the EXR header attributes 'spp', 'worldToCamera' and 'worldToNDC' (data_gen writes them), "
                  "or Buffers(spp=..., world_to_camera=..., world_to_ndc=...)")
-            raise BuffersError(
-                f"{prefix}method '{method}' needs the frame's {meta} (e.g. {how}), which this input lacks; "
-                "it is never guessed")
+            parts.append(f"the frame's {meta} (e.g. {how}; never guessed)")
         raise BuffersError(
-            f"{prefix}method '{method}' needs buffer(s) {missing}, which this input lacks "
-            f"(present: {sorted(self.present())}); render them (data_gen) or pick another method")
+            f"{prefix}method '{method}' needs {' and '.join(parts)}, which this input lacks "
+            f"(present: {sorted(self.present())}); render them with `python -m data_gen render SCENE "
+            f"--methods {method}` or pick another method")
 
     # -- conveniences ------------------------------------------------------------------------------
     def present(self) -> frozenset[str]:

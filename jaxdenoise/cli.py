@@ -34,6 +34,7 @@ def _cmd_denoise(args: argparse.Namespace) -> int:
 
     from .api import AUTO, choose_method, resolve
     from .inference import inference_fn, notes, prepare
+    from .methods import get
     from .fsutil import write_json
     from .io import read_buffers, write_image
 
@@ -45,7 +46,10 @@ def _cmd_denoise(args: argparse.Namespace) -> int:
     repair = "zero" if args.repair else None
     inp = Path(args.input)
     buffers, attrs = read_buffers(inp, repair=repair)
-    m, params = resolve(choose_method(buffers) if args.method == AUTO else args.method, args.weights)
+    name = choose_method(buffers) if args.method == AUTO else args.method
+    if args.weights is None:  # every missing buffer named before the weights load or anything compiles
+        prepare(get(name), buffers, where=str(inp))
+    m, params = resolve(name, args.weights)
     prepared = prepare(m, buffers, where=str(inp))
     _warn(notes(m, buffers))
     image = inference_fn(m)(params, prepared)
@@ -84,13 +88,18 @@ def _denoise_frames(args: argparse.Namespace, t0: float) -> int:
 
     from .api import AUTO, choose_method, resolve
     from .fsutil import write_json
-    from .inference import notes
+    from .inference import notes, prepare
     from .io import read_sequence, write_image
+    from .methods import get
     from .sequence import run
 
     repair = "zero" if args.repair else None
     frames, paths = read_sequence(args.frames, repair=repair)
-    m, params = resolve(choose_method(frames[0]) if args.method == AUTO else args.method, args.weights)
+    name = choose_method(frames[0]) if args.method == AUTO else args.method
+    if args.weights is None:  # every missing buffer named before the weights load or anything compiles
+        for f, p in zip(frames, paths):
+            prepare(get(name), f, where=str(p))
+    m, params = resolve(name, args.weights)
     if args.input is not None and Path(args.input).resolve() not in [p.resolve() for p in paths]:
         raise SystemExit(f"error: {args.input} is not among the frames matched by --frames '{args.frames}'")
     out_dir = Path(args.output)

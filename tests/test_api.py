@@ -144,3 +144,25 @@ def test_auto_picks_the_best_method_the_frame_has_buffers_for(monkeypatch):
     assert choose_method(synthetic_frame(8, 8, seed=1, fields=("color", "color_var"))) == "bilateral"
     with pytest.raises(MethodError, match=r"method 'auto': no method of .* runs on a frame with \['color'.*install OIDN"):
         choose_method(plain)
+
+
+def test_a_missing_buffer_is_named_before_weights_load_or_compile(tmp_path, monkeypatch):
+    """Every missing buffer and metadata field in one error, before the weights load (the early check
+    uses the default config: the shipped weights' configs need exactly what the defaults need)."""
+    from jaxdenoise import api
+    from jaxdenoise.buffers import BuffersError
+    from jaxdenoise.cli import main
+    from jaxdenoise.io import write_buffers
+    from jaxdenoise.methods import get
+
+    for name in ("lbf", "lbf-nlm", "demc", "rae", "gradnet"):
+        assert api.resolve(name)[0].required() == get(name).required(), name
+    calls = []
+    monkeypatch.setattr(api, "resolve", lambda *a, **k: calls.append(a) or (_ for _ in ()).throw(AssertionError))
+    bare = synthetic_frame(8, 8, seed=1, fields=("color",)).replace(spp=None)
+    with pytest.raises(BuffersError, match=r"needs buffer\(s\) \['albedo', .*\] and the frame's \['spp'\].*"
+                                           r"data_gen render SCENE --methods lbf"):
+        jd.denoise(bare, method="lbf")
+    write_buffers(tmp_path / "bare.exr", synthetic_frame(8, 8, seed=1, fields=("color",)))
+    assert main(["denoise", str(tmp_path / "bare.exr"), "-o", str(tmp_path / "o.exr"), "--method", "demc"]) != 0
+    assert calls == []  # neither path reached the weights
