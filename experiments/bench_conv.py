@@ -25,7 +25,6 @@ else running).
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import sys
@@ -40,9 +39,8 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxdenoise.fsutil import write_json, write_text  # noqa: E402
 from jaxdenoise.solvers import optim  # noqa: E402
-from common import timed, unet  # noqa: E402
+from common import all_measured, timed, unet, write_study  # noqa: E402
 
 RAE_WIDTHS = (32, 43, 57, 76, 101)
 # the forward-pass variants, in the page's order: (pad the widths to a multiple of, compute dtype)
@@ -160,18 +158,13 @@ def main() -> None:
     res["seconds"] = time.time() - t0
     res["command"] = "python " + " ".join(sys.argv)
     out = Path(args.out)
-    write_json(out / "conv.json", res)
-    # the page from the JSON as written: what the pages' check reads
-    write_text(out / "conv.md", page(json.loads((out / "conv.json").read_text())))
+    write_study(out, "conv.json", "conv.md", res, page)
     print(f"bench_conv: {res['seconds']:.0f} s -> {out / 'conv.md'}")
 
 
 def page(res: dict) -> str:
     """``conv.md`` from ``conv.json`` alone (a missing value raises, never prints a hole)."""
-    try:
-        json.dumps(res, allow_nan=False)
-    except ValueError:
-        raise ValueError("conv.json holds a NaN or an infinity: a value that was not measured") from None
+    all_measured(res, "conv.json")
     mm, forward = res["matmul"], dict(res["forward"])
     timings = [mm, res["train_step"], *forward.values()]
     runs = {len(x["runs_s"]) for x in timings}

@@ -36,6 +36,7 @@ import data_gen  # noqa: E402
 from data_gen import render, scenes  # noqa: E402
 from data_gen.dataset import dataset_size_bytes  # noqa: E402
 from jaxdenoise.metrics import relmse  # noqa: E402
+from common import all_measured, write_study  # noqa: E402
 
 
 def _time(fn, repeats):
@@ -84,14 +85,11 @@ def main(argv=None) -> int:
     ap.add_argument("--train-note", default=None, help="a remark printed under the training-set section")
     a = ap.parse_args(argv)
     if a.train_set_only:
-        from jaxdenoise.fsutil import write_json, write_text
-
         res = json.loads((Path(a.out) / "data_gen.json").read_text())
         res["train_set"] = _train_set(a.train_dir)
         if a.train_note:
             res["train_set"]["note"] = a.train_note
-        write_json(Path(a.out) / "data_gen.json", res)
-        write_text(Path(a.out) / "data_gen.md", page(json.loads((Path(a.out) / "data_gen.json").read_text())))
+        write_study(Path(a.out), "data_gen.json", "data_gen.md", res, page)
         return 0
     if a.from_json:
         from jaxdenoise.fsutil import write_text
@@ -220,21 +218,14 @@ def main(argv=None) -> int:
            "leave_out": leave_rows, "gradients": grad_rows, "train_set": train,
            "command": "python experiments/bench_data_gen.py " + " ".join(argv if argv is not None else sys.argv[1:])}
     out = Path(a.out)
-    from jaxdenoise.fsutil import write_json, write_text
-
-    write_json(out / "data_gen.json", res)
-    # the page from the JSON as written: what the pages' check reads
-    write_text(out / "data_gen.md", page(json.loads((out / "data_gen.json").read_text())))
+    write_study(out, "data_gen.json", "data_gen.md", res, page)
     print(f"bench_data_gen: {len(speed_rows)} scenes -> {out / 'data_gen.md'}")
     return 0
 
 
 def page(r: dict) -> str:
     """``data_gen.md`` from ``data_gen.json`` alone (a missing value raises, never prints a hole)."""
-    try:
-        json.dumps(r, allow_nan=False)
-    except ValueError:
-        raise ValueError("data_gen.json holds a NaN or an infinity: a value that was not measured") from None
+    all_measured(r, "data_gen.json")
     cmd = f"{r['command']:s}".strip()
     L = ["# data_gen benchmarks", "",
          "## Buffer integrator against Mitsuba's `path` (equal spp, resolution, depth)", "",

@@ -33,8 +33,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdenoise.filters import DELTA, ZETA, cross_bilateral, gaussian
-from jaxdenoise.fsutil import write_json, write_text
-from common import timed
+from jaxdenoise.fsutil import write_json
+from common import all_measured, timed, write_study
 
 CHANNELS = (3, 3, 3, 3, 1)  # position, normal, texture 1, texture 2, visibility (Sec. 3.2)
 
@@ -137,19 +137,14 @@ def main(argv=None) -> int:
     res["machine"]["load_avg_end"] = os.getloadavg()
     res["command"] = "python experiments/bench_filters.py " + " ".join(argv if argv is not None else sys.argv[1:])
 
-    write_json(out / "bench_filters.json", res)
-    # the page from the JSON as written: what the pages' check reads
-    write_text(out / "filters.md", page(json.loads((out / "bench_filters.json").read_text())))
+    write_study(out, "bench_filters.json", "filters.md", res, page)
     print(json.dumps({k: res[k]["median_s"] for k in ("ours", "gaussian", "naive_small", "ours_small")}))
     return 0
 
 
 def page(res: dict) -> str:
     """``filters.md`` from ``bench_filters.json`` alone (a missing value raises, never prints a hole)."""
-    try:
-        json.dumps(res, allow_nan=False)
-    except ValueError:
-        raise ValueError("bench_filters.json holds a NaN or an infinity: a value that was not measured") from None
+    all_measured(res, "bench_filters.json")
     mb = lambda b: f"{b / 2**20:,.0f} MiB"  # noqa: E731
     o, g, n, os_, tg, m = (res[k] for k in ("ours", "gaussian", "naive_small", "ours_small", "target", "machine"))
     w, h = res["size"]

@@ -40,8 +40,8 @@ from data_gen.integrator import PathSettings  # noqa: E402
 from data_gen.mitsuba_setup import setup_mitsuba  # noqa: E402
 from data_gen.render import render_buffers  # noqa: E402
 from data_gen.scenes import build_scene, default_scene, load_scene  # noqa: E402
-from jaxdenoise.fsutil import write_json, write_text  # noqa: E402
 from jaxdenoise.metrics import relmse  # noqa: E402
+from common import all_measured, write_study  # noqa: E402
 
 
 def scenes(size: int) -> dict:
@@ -144,9 +144,7 @@ def main(argv=None) -> int:
     res = {"config": vars(args), "command": cmd, "seconds": time.perf_counter() - t_start, "variant": variant,
            "cpu_count": os.cpu_count(), "machine": platform.machine(), "load_average": os.getloadavg(), "rows": rows}
     out = Path(args.out)
-    write_json(out.with_suffix(".json"), res)
-    # the page from the JSON as written: what the pages' check reads
-    write_text(out, page(json.loads(out.with_suffix(".json").read_text())))
+    write_study(out.parent, out.with_suffix(".json").name, out.name, res, page)
     print(f"bench_gradient_cost: {len(rows)} rows, wrote {out}")
     return 0
 
@@ -154,10 +152,7 @@ def main(argv=None) -> int:
 def page(res: dict) -> str:
     """``data_gen_gradient.md`` from ``data_gen_gradient.json`` alone (a missing value raises, never
     prints a hole)."""
-    try:
-        json.dumps(res, allow_nan=False)
-    except ValueError:
-        raise ValueError("data_gen_gradient.json holds a NaN or an infinity: a value that was not measured") from None
+    all_measured(res, "data_gen_gradient.json")
     cfg, rows, load = res["config"], res["rows"], res["load_average"]
     lines = [
         "# Gradient-domain buffers: replay vs reconnection shift, cost, variance, reconstruction",

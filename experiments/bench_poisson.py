@@ -18,7 +18,6 @@ JAX runs on the CPU unless ``JAX_PLATFORMS`` says otherwise.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import re
@@ -31,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdenoise import solvers
-from jaxdenoise.fsutil import write_json, write_text
+from common import all_measured, write_study
 from jaxdenoise.metrics import relmse
 from jaxdenoise.solvers.dct import dct_apply
 
@@ -144,9 +143,7 @@ def main() -> None:
                    jax=jax.__version__, devices=[str(d) for d in jax.devices()], cpu_count=os.cpu_count(),
                    machine=platform.machine(), load_avg_at_start=load_at_start, load_avg_at_end=os.getloadavg())
         res = {"config": cfg, "records": records, **summary}
-        write_json(out_dir / "poisson.json", res)
-        # the page from the JSON as written: what the pages' check reads
-        write_text(out_dir / "poisson.md", page(json.loads((out_dir / "poisson.json").read_text())))
+        write_study(out_dir, "poisson.json", "poisson.md", res, page)
 
     sections = set(args.sections.split(","))
     dct_fn = jax.jit(solvers.poisson_l2_dct)
@@ -237,10 +234,7 @@ L1_SETTINGS = {"irls": ("irls_iters", "cg_iters"), "admm": ("iters",)}
 def page(res: dict) -> str:
     """``poisson.md`` from its ``poisson.json`` alone (any of docs/results/poisson*/; a missing value
     raises, never prints a hole). The tables are the sections the run's records hold."""
-    try:
-        json.dumps(res, allow_nan=False)
-    except ValueError:
-        raise ValueError("poisson.json holds a NaN or an infinity: a value that was not measured") from None
+    all_measured(res, "poisson.json")
     cfg = res["config"]
     h, w, c = cfg["shape"]
     tables: dict[str, list[dict]] = {}

@@ -13,7 +13,6 @@ the page from the JSON alone).
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shutil
 import statistics
@@ -27,7 +26,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from jaxdenoise.fsutil import write_json, write_text  # noqa: E402
+from common import all_measured, write_study  # noqa: E402
 
 
 # the modes, in the page's order: the extra arguments of `python -m data_gen dataset`
@@ -63,18 +62,13 @@ def main() -> None:
            "median": med, "overhead_per_task_s": per_task, "speedup_2_workers": med["serial"] / med["dask local:2"],
            "load_at_start": load, "load_at_end": os.getloadavg()[0], "cpu_count": os.cpu_count()}
     out = Path(args.out)
-    write_json(out / "scale_out.json", res)
-    # the page from the JSON as written: what the pages' check reads
-    write_text(out / "scale_out.md", page(json.loads((out / "scale_out.json").read_text())))
+    write_study(out, "scale_out.json", "scale_out.md", res, page)
     print(f"scale_out: {med} -> {out / 'scale_out.md'}")
 
 
 def page(res: dict) -> str:
     """``scale_out.md`` from ``scale_out.json`` alone (a missing value raises, never prints a hole)."""
-    try:
-        json.dumps(res, allow_nan=False)
-    except ValueError:
-        raise ValueError("scale_out.json holds a NaN or an infinity: a value that was not measured") from None
+    all_measured(res, "scale_out.json")
     times, med = res["times"], res["median"]
     repeats = {len(times[m]) for m in MODES}
     if len(repeats) != 1:

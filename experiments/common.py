@@ -6,6 +6,7 @@ Scripts put ``experiments/`` on ``sys.path`` (they run as ``python experiments/N
 """
 from __future__ import annotations
 
+import json
 import math
 import statistics
 import tarfile
@@ -71,3 +72,22 @@ def num(value, spec: str = ".4g") -> str:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
         raise ValueError(f"expected a finite number, found {value!r}")
     return format(value, spec)
+
+
+def all_measured(res: dict, name: str) -> None:
+    """Raise when the result ``res`` (of the JSON ``name``) holds a NaN or an infinity anywhere: a
+    value that was not measured, which a page must not print."""
+    try:
+        json.dumps(res, allow_nan=False)
+    except ValueError:
+        raise ValueError(f"{name} holds a NaN or an infinity: a value that was not measured") from None
+
+
+def write_study(out: Path, json_name: str, page_name: str, res: dict, page: Callable[[dict], str]) -> Path:
+    """Write an experiment's result JSON, then its page from that JSON as written (what
+    scripts/results.py checks the committed page against); returns the page's path."""
+    from jaxdenoise.fsutil import write_json, write_text
+
+    write_json(out / json_name, res)
+    write_text(out / page_name, page(json.loads((out / json_name).read_text())))
+    return out / page_name
