@@ -135,8 +135,9 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     report = bench.run(args.data, parse_list(args.methods), args.out, runs=args.runs, weights=weights,
                        progress=not args.quiet, scheduler=args.scheduler, timing=not args.no_timing)
     print(bench.markdown_table(bench.summarize(report["records"])))
-    print(f"reports: {Path(args.out) / 'results.md'}, {Path(args.out) / 'results.json'}, "
-          f"{Path(args.out) / 'error_vs_time.png'}, viewer {Path(args.out) / 'viewer.html'}")
+    out = Path(args.out)
+    plot = f"{out / 'error_vs_time.png'}, " if (out / "error_vs_time.png").is_file() and not args.no_timing else ""
+    print(f"reports: {out / 'results.md'}, {out / 'results.json'}, {plot}viewer {out / 'viewer.html'}")
     print(bench.one_line(report))
     return 0
 

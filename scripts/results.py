@@ -594,6 +594,51 @@ def _filters_poisson_goals(results: Path) -> str:
     return table(["what", "goal", "measured", "peer in the same run", "page"], rows, "lllll")
 
 
+# baselines for the network issues ------------------------------------------------------------------
+
+BASELINE_METHODS = ["input", "lbf", "demc", "rae", "gradnet", "oidn"]
+
+
+def baseline(results: Path, rel: str) -> str:
+    """RelMSE (SSIM) per method and rate of a bench report; a method that did not run at a rate
+    shows "-" only where the report's ``skipped`` list says why (e.g. LBF at 1 spp: no variance)."""
+    d = load(results, rel)
+    summary, skipped = d["summary"], d["skipped"]
+    spps = sorted({r["spp"] for r in summary})
+    methods = [m for m in BASELINE_METHODS if any(r["method"] == m for r in summary)]
+    rows = []
+    for m in methods:
+        cells = []
+        for s in spps:
+            r = next((x for x in summary if x["method"] == m and x["spp"] == s), None)
+            if r is None:
+                if not any(k["method"] == m for k in skipped):
+                    raise PageError(f"{rel}: no {m} row at {s} spp and no skipped entry saying why")
+                cells.append("-")
+            else:
+                cells.append(f"{num(r['relmse'])} ({num(r['ssim'], '.3f')})")
+        rows.append([m] + cells)
+    for j, s in enumerate(spps):  # bold the lowest RelMSE per rate
+        vals = [next((x["relmse"] for x in summary if x["method"] == m and x["spp"] == s), math.inf) for m in methods]
+        lo = min(vals)
+        for i, v in enumerate(vals):
+            if v == lo:
+                rows[i][j + 1] = f"**{rows[i][j + 1]}**"
+    frames = sorted({r["frames"] for r in summary})
+    return table(["method"] + [f"{s} spp" for s in spps], rows) + \
+        f"\n\nRelMSE (SSIM), mean over frames ({', '.join(str(f) for f in frames)} per cell)."
+
+
+@renderer("baseline-library-eval")
+def _baseline_library_eval(results: Path) -> str:
+    return baseline(results, "bench_library_eval/results.json")
+
+
+@renderer("baseline-heldout")
+def _baseline_heldout(results: Path) -> str:
+    return baseline(results, "bench_heldout_all/results.json")
+
+
 # demo ---------------------------------------------------------------------------------------------
 
 @renderer("demo-time")
