@@ -58,6 +58,21 @@ def link_folders(folders: list[Path], into: Path) -> int:
     return n
 
 
+def fill(export, mib: float) -> dict:
+    """``export(max_mib)`` sized so that the compressed file, not the raw arrays `Cache.export`
+    bounds, takes up to ``mib``: once with ``mib`` as the raw bound, then, when the file came out
+    smaller and more items were available, again with the bound scaled by the compression seen (the
+    file is written atomically each time; the last one stays if the second overshoots)."""
+    first = export(mib)
+    ratio = first["bytes"] / max(1, first["count"] * first["per_item_bytes"])
+    if first["count"] >= first["requested"] or first["bytes"] > 0.9 * mib * 2**20:
+        return first
+    second = export(0.97 * mib / ratio)
+    if second["bytes"] > mib * 2**20:  # compressed worse than the first draw: back to the safe bound
+        return export(mib)
+    return second
+
+
 def per_rate(path: Path) -> dict[str, int]:
     """How many items of an export are at each sampling rate."""
     with np.load(path) as z:
@@ -93,15 +108,16 @@ def main(argv: list[str] | None = None) -> int:
     link_folders([Path(a.val)], out / "links" / "val")
     repo = repository_mib()
     val = m.module.make_dataset(out / "links" / "val", config, progress=True)
-    vs = val.export(out / "val.npz", n=len(val.frames), whole=True, spps=spps, instances=1, max_mib=a.val_mib)
+    vs = fill(lambda mib: val.export(out / "val.npz", n=len(val.frames), whole=True, spps=spps, instances=1,
+                                     max_mib=mib), a.val_mib)
     left = a.budget_mib - repo - vs["bytes"] / 2**20 - 1.0  # 1 MiB for what the run writes beside
     if left <= 1.0:
         raise JaxdenoiseError(f"export_training: the repository ({repo:.1f} MiB) and the validation export "
                               f"({vs['bytes'] / 2**20:.1f} MiB) leave no room in {a.budget_mib} MiB")
     train = m.module.make_dataset(out / "links" / "train", config, progress=True)
     # compressed .npz: the bound applies to the raw arrays, so the file is at most this and usually less
-    ts = train.export(out / "train.npz", n=10**6, size=a.crop, rng=np.random.default_rng(a.seed), spps=spps,
-                      frames=a.frames, max_mib=left)
+    ts = fill(lambda mib: train.export(out / "train.npz", n=10**6, size=a.crop, rng=np.random.default_rng(a.seed),
+                                       spps=spps, frames=a.frames, max_mib=mib), left)
     summary = {"method": m.name, "train_folders": a.train, "train_shots": n_train, "val_folder": a.val,
                "spps": list(spps), "crop": a.crop, "frames": a.frames, "budget_mib": a.budget_mib,
                "repository_mib": repo, "train": {**ts, "per_rate": per_rate(out / "train.npz")},
