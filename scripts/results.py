@@ -94,6 +94,11 @@ def renderer(name: str):
     return register
 
 
+def bind(name: str, fn: Callable[..., str], *args) -> None:
+    """Register ``name`` as the generic renderer ``fn`` on ``args`` (the JSON path, rows, columns)."""
+    TABLES[name] = lambda results: fn(results, *args)
+
+
 def bench_wide(results: Path, rel: str, methods: list[str], spps: list[int]) -> str:
     """Methods down, RelMSE and SSIM per rate across, from a bench report's summary; the best
     RelMSE and SSIM at each rate in bold."""
@@ -145,14 +150,10 @@ def _demc_heldout(results: Path) -> str:
                       ["input", "gaussian", "bilateral", "lbf", "demc", "oidn"], [4, 16, 64])
 
 
-@renderer("demc-heldout-time")
-def _demc_heldout_time(results: Path) -> str:
-    return bench_time(results, "bench_heldout_demc/results.json", ["bilateral", "lbf", "demc", "oidn"], 4)
+bind("demc-heldout-time", bench_time, "bench_heldout_demc/results.json", ["bilateral", "lbf", "demc", "oidn"], 4)
 
 
-@renderer("demc-speed")
-def _demc_speed(results: Path) -> str:
-    return network_speed(results, "network_speed.json")
+bind("demc-speed", network_speed, "network_speed.json")
 
 
 @renderer("demc-ablation")
@@ -235,14 +236,10 @@ def rae_temporal(results: Path, rel: str) -> str:
                  "lr" + "r" * 5 + "ll")
 
 
-@renderer("rae-temporal")
-def _rae_temporal(results: Path) -> str:
-    return rae_temporal(results, "rae_temporal.json")
+bind("rae-temporal", rae_temporal, "rae_temporal.json")
 
 
-@renderer("rae-temporal-cbox")
-def _rae_temporal_cbox(results: Path) -> str:
-    return rae_temporal(results, "rae_temporal_cbox.json")
+bind("rae-temporal-cbox", rae_temporal, "rae_temporal_cbox.json")
 
 
 @renderer("rae-temporal-means")
@@ -300,9 +297,7 @@ def _rae_ablation(results: Path) -> str:
         f"\n\nAll at step {step:,}, validation on the 4 validation fly-throughs at 1 spp."
 
 
-@renderer("rae-bench-time")
-def _rae_bench_time(results: Path) -> str:
-    return bench_time(results, "bench_rae_test/results.json", ["gaussian", "oidn", "rae"], 1)
+bind("rae-bench-time", bench_time, "bench_rae_test/results.json", ["gaussian", "oidn", "rae"], 1)
 
 
 @renderer("rae-speed")
@@ -374,9 +369,7 @@ def _lbf_bench(results: Path) -> str:
                                                               "oidn"], [4, 16, 64])
 
 
-@renderer("lbf-bench-time")
-def _lbf_bench_time(results: Path) -> str:
-    return bench_time(results, "bench_heldout/results.json", ["bilateral", "nlm", "lbf", "lbf-nlm", "oidn"], 4)
+bind("lbf-bench-time", bench_time, "bench_heldout/results.json", ["bilateral", "nlm", "lbf", "lbf-nlm", "oidn"], 4)
 
 
 # gradnet ------------------------------------------------------------------------------------------
@@ -425,9 +418,7 @@ def _gradnet_equal_time(results: Path) -> str:
     return table(["method", "spp", "frames", "RelMSE", "SSIM", "render s", "denoise s", "total s"], out)
 
 
-@renderer("gradnet-speed")
-def _gradnet_speed(results: Path) -> str:
-    return network_speed(results, "gradnet_speed.json")
+bind("gradnet-speed", network_speed, "gradnet_speed.json")
 
 
 @renderer("gradnet-multispp")
@@ -476,14 +467,10 @@ def ablation_curves(results: Path, rel: str) -> str:
     return table(["variant"] + [f"step {s:,}" for s in steps], rows)
 
 
-@renderer("gradnet-ablation")
-def _gradnet_ablation(results: Path) -> str:
-    return ablation_curves(results, "gradnet_ablation/ablation.json")
+bind("gradnet-ablation", ablation_curves, "gradnet_ablation/ablation.json")
 
 
-@renderer("gradnet-decoder")
-def _gradnet_decoder(results: Path) -> str:
-    return ablation_curves(results, "gradnet_decoder/ablation.json")
+bind("gradnet-decoder", ablation_curves, "gradnet_decoder/ablation.json")
 
 
 @renderer("gradnet-ablation-seeds")
@@ -629,14 +616,10 @@ def baseline(results: Path, rel: str) -> str:
         f"\n\nRelMSE (SSIM), mean over frames ({', '.join(str(f) for f in frames)} per cell)."
 
 
-@renderer("baseline-library-eval")
-def _baseline_library_eval(results: Path) -> str:
-    return baseline(results, "bench_library_eval/results.json")
+bind("baseline-library-eval", baseline, "bench_library_eval/results.json")
 
 
-@renderer("baseline-heldout")
-def _baseline_heldout(results: Path) -> str:
-    return baseline(results, "bench_heldout_all/results.json")
+bind("baseline-heldout", baseline, "bench_heldout_all/results.json")
 
 
 # demo ---------------------------------------------------------------------------------------------
