@@ -1,4 +1,4 @@
-"""data_gen: Mitsuba 3 + Dr.Jit renders with every buffer the denoisers use (DESIGN.md, issue 3).
+"""data_gen: Mitsuba 3 + Dr.Jit renders with every buffer the denoisers use (docs/architecture.md, issue 3).
 
 Public API (the demo and the experiments code against it):
 

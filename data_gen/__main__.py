@@ -34,48 +34,63 @@ def main(argv: list[str] | None = None) -> int:
     sub = p.add_subparsers(dest="verb", required=True)
 
     def common(q):
-        q.add_argument("--spp", type=_spp_list, default=[4], help="noisy sample counts, e.g. 1,4,16 (default 4)")
-        q.add_argument("--instances", type=int, default=1, help="independent noisy renders per spp (default 1)")
-        q.add_argument("--ref-spp", type=int, default=1024, help="reference spp, 0 = none (default 1024)")
-        q.add_argument("--max-depth", type=int, default=8, help="max path depth, Mitsuba meaning (default 8)")
-        q.add_argument("--methods", default=None, help="render only what these methods need (comma list)")
-        q.add_argument("--buffers", default=None, help="render exactly these buffers (comma list)")
-        q.add_argument("--seed", type=int, default=0)
+        q.add_argument("--spp", type=_spp_list, default=[4], help="noisy sample counts, e.g. 1,4,16 (default: 4)")
+        q.add_argument("--instances", type=int, default=1, help="independent noisy renders per spp (default: 1)")
+        q.add_argument("--ref-spp", type=int, default=1024, help="reference spp, 0 = none (default: 1024)")
+        q.add_argument("--max-depth", type=int, default=8, help="max path depth, Mitsuba meaning (default: 8)")
+        q.add_argument("--methods", default=None,
+                       help="render only the buffers these methods need (comma list; default: every buffer the "
+                            "scene can vary, gradients excepted)")
+        q.add_argument("--buffers", default=None,
+                       help="render exactly these buffers, colour always included (comma list; overrides --methods; "
+                            "default: none, --methods decides)")
+        q.add_argument("--seed", type=int, default=0, help="base random seed (default: 0)")
         q.add_argument("--shift", choices=SHIFTS, default=None,
-                       help=f"shift mapping of the gradient buffers dx, dy (default {DEFAULT_SHIFT})")
+                       help=f"shift mapping of the gradient buffers dx, dy (default: {DEFAULT_SHIFT})")
         q.add_argument("--primal", choices=PRIMALS, default="base",
-                       help="colour of gradient frames: the plain base paths (default) or, with --shift "
-                            "reconnect, the G-PT primal (MIS over each pixel's neighbour pairs)")
-        q.add_argument("--out", required=True, help="output folder")
-        q.add_argument("--variant", default="llvm_ad_rgb", help="preferred Mitsuba variant")
-        q.add_argument("--no-progress", action="store_true")
+                       help="colour of gradient frames: the plain base paths or, with --shift reconnect, the "
+                            "G-PT primal (MIS over each pixel's neighbour pairs) (default: base)")
+        q.add_argument("--out", required=True, help="output folder (required)")
+        q.add_argument("--variant", default="llvm_ad_rgb",
+                       help="preferred Mitsuba variant; scalar_rgb if it does not work (default: llvm_ad_rgb)")
+        q.add_argument("--no-progress", action="store_true", help="no progress bar (default: show one)")
 
     r = sub.add_parser("render", help="render one Mitsuba 3 XML scene (or 'default') into the bench layout")
     r.add_argument("scene", help="scene XML file, library:NAME (a scene of the scene library, data_gen/library), "
                                  "or 'default' for the built-in scene")
-    r.add_argument("--width", type=int, default=None, help="film width (XML scenes: via their resx default; a "
-                                                           "library scene given one of width/height keeps its aspect)")
-    r.add_argument("--height", type=int, default=None)
-    r.add_argument("--frames", type=int, default=0, help="render a camera fly-through of N frames instead")
+    r.add_argument("--width", type=int, default=None,
+                   help="film width (default: the scene's own; any XML: through its resx/resy parameters when it "
+                        "declares both, else its <film>'s width is replaced; 'default': 128; a library scene given "
+                        "one of width/height keeps its aspect)")
+    r.add_argument("--height", type=int, default=None,
+                   help="film height (default: the scene's own; 'default': the width; see --width)")
+    r.add_argument("--frames", type=int, default=0,
+                   help="render a camera fly-through of N frames instead (default: 0, one still shot)")
     common(r)
     d = sub.add_parser("dataset", help="render procedural scenes, or a split of the scene library, into "
                                        "DIR/scene_XXXX + manifest.json")
-    d.add_argument("--family", default=None, help="rooms, objects, dof, thin, fireflies, envmap or mixed (default)")
+    d.add_argument("--family", default=None,
+                   help="procedural family: rooms, objects, dof, thin, fireflies, envmap or mixed "
+                        "(default: mixed, unless --library is given)")
     d.add_argument("--library", default=None, metavar="SPLIT",
-                   help="render the scenes of this split of the scene library instead: train, val or eval")
+                   help="render the scenes of this split of the scene library instead: train, val or eval "
+                        "(default: none, a procedural family)")
     d.add_argument("--count", type=int, default=None,
-                   help="number of scenes (required for a family; a library split: default all)")
-    d.add_argument("--start", type=int, default=0, help="index of the first scene folder (default 0)")
-    d.add_argument("--res", type=int, default=None, help="square resolution (default 128; library scenes: their own size)")
-    d.add_argument("--width", type=int, default=None, help="film width (overrides --res)")
-    d.add_argument("--height", type=int, default=None, help="film height (overrides --res)")
-    d.add_argument("--workers", type=int, default=1, help="local worker processes (default 1)")
+                   help="number of scenes (required for a family; default for a library split: all)")
+    d.add_argument("--start", type=int, default=0, help="index of the first scene folder (default: 0)")
+    d.add_argument("--res", type=int, default=None,
+                   help="square resolution (default: 128; library scenes: their own size)")
+    d.add_argument("--width", type=int, default=None, help="film width, overrides --res (default: --res)")
+    d.add_argument("--height", type=int, default=None, help="film height, overrides --res (default: --res)")
+    d.add_argument("--workers", type=int, default=1, help="local worker processes (default: 1)")
     d.add_argument("--scheduler", default=None,
                    help="render on Dask: 'local', 'local:N' (a local cluster of N workers) or a scheduler "
-                        "address such as tcp://host:8786 (needs the cluster extra)")
-    d.add_argument("--note", default=None, help="free text stored in the manifest")
+                        "address such as tcp://host:8786 (needs the cluster extra; default: none, local "
+                        "processes, see --workers)")
+    d.add_argument("--note", default=None, help="free text stored in the manifest (default: none)")
     d.add_argument("--frames", type=int, default=0,
-                   help="render each scene as a camera fly-through of N frames (frame_XXXX/ folders)")
+                   help="render each scene as a camera fly-through of N frames (frame_XXXX/ folders; "
+                        "default: 0, one still shot per scene)")
     common(d)
     a = p.parse_args(argv)
     # Input the project refuses (its own error type, a missing file) is one line and exit code 2; a

@@ -1,8 +1,8 @@
 """Rendering datasets on a Dask cluster (``python -m data_gen dataset ... --scheduler ADDRESS|local[:N]``).
 
-Dask (``dask.distributed``, the ``cluster`` extra: ``pip install -e '.[cluster]'``) schedules one
-task per shot; this module submits and collects (connecting is `jaxdenoise.cluster.connect`, shared with
-`bench --scheduler`):
+Dask (``dask.distributed``, the ``cluster`` extra: ``pip install 'jaxdenoise[cluster]'``, from a clone
+``pip install -e '.[cluster]'``) schedules one task per shot; this module submits and collects
+(connecting is `jaxdenoise.cluster.connect`, shared with `bench --scheduler`):
 
 - ``local[:N]`` starts a `distributed.LocalCluster` of N single-threaded worker processes (default:
   one per core) on this machine; any other value is the address of a running scheduler

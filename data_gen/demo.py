@@ -20,12 +20,13 @@ def register(sub) -> None:
     s = sub.add_parser("demo", help="render the built-in scene (cached) and bench every available method on it")
     s.add_argument("--out", default="jaxdenoise-demo", help="report folder (default: ./jaxdenoise-demo)")
     s.add_argument("--cache", default=str(DEFAULT_CACHE), help=f"render cache (default: {DEFAULT_CACHE})")
-    s.add_argument("--spp", default="4,16", help="comma-separated noisy sample counts")
-    s.add_argument("--ref-spp", type=int, default=1024)
-    s.add_argument("--size", type=int, default=128, help="image width and height")
-    s.add_argument("--methods", default="all", help="comma-separated method names, or 'all' available")
-    s.add_argument("--runs", type=int, default=5)
-    s.add_argument("--quiet", action="store_true")
+    s.add_argument("--spp", default="4,16", help="comma-separated noisy sample counts (default: 4,16)")
+    s.add_argument("--ref-spp", type=int, default=1024, help="reference sample count (default: 1024)")
+    s.add_argument("--size", type=int, default=128, help="image width and height (default: 128)")
+    s.add_argument("--methods", default="all",
+                   help="comma-separated method names, or 'all' available (default: all)")
+    s.add_argument("--runs", type=int, default=5, help="timed runs per frame, at least 5 (default: 5)")
+    s.add_argument("--quiet", action="store_true", help="no progress bars (default: show them)")
     s.set_defaults(func=run_demo)
 
 

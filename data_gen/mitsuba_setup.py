@@ -124,7 +124,7 @@ def is_vectorized() -> bool:
 
 
 class RenderTimer:
-    """Wall seconds of a render with Dr.Jit's one-off kernel compilation taken out (DESIGN.md
+    """Wall seconds of a render with Dr.Jit's one-off kernel compilation taken out (docs/architecture.md
     "Error against run time": render time excludes one-off compilation, so equal-time curves are true).
 
     Use as ``with RenderTimer() as t: ...``; afterwards ``t.seconds`` is the wall time minus the

@@ -237,6 +237,6 @@ def render_reference(scene, *, spp: int, seed: int, settings: PathSettings,
                         samples_per_pass=samples_per_pass, on_pass=on_pass)["color"][0]
     a, b = ma / half_a, mb / half_b
     ref = ((ma + mb) / spp).astype(np.float32)
-    # RelMSE as in DESIGN.md (eps = 0.01), computed here in float64 without importing jax.
+    # RelMSE as in docs/architecture.md (eps = 0.01), computed here in float64 without importing jax.
     noise = float(np.mean((a - b) ** 2 / (ref.astype(np.float64) ** 2 + 0.01)))
     return ref, noise

@@ -336,13 +336,48 @@ def check_xml(path: str | os.PathLike) -> None:
                              f"(looked for '{ref}'); put it there or fix the filename")
 
 
+def _declared_defaults(path: Path) -> set[str]:
+    """The names of the ``<default name=...>`` parameters an XML scene declares at its top level."""
+    return {e.get("name") for e in ET.parse(path).getroot().findall("default")}
+
+
+def _load_resized(mi, path: Path, width: int | None, height: int | None):
+    """``path`` loaded with its sensors' film width/height replaced (`load_scene`)."""
+    root = ET.parse(path).getroot()
+    films = [f for sensor in root.iter("sensor") for f in sensor.findall("film")]
+    if not films:
+        raise SceneError(f"scene file '{path}': --width/--height need a <film type=\"hdrfilm\"> inside its "
+                         f"<sensor> (it has none; Mitsuba's default film is 768x576), or declare "
+                         f"<default name=\"resx\" value=\"256\"/> and <default name=\"resy\" value=\"256\"/> and "
+                         f"use $resx / $resy as the film's width and height")
+    for film in films:
+        for name, value in (("width", width), ("height", height)):
+            if value is None:
+                continue
+            entry = next((e for e in film if e.get("name") == name), None)
+            if entry is None:
+                entry = ET.SubElement(film, "integer", {"name": name})
+            entry.tag = "integer"
+            entry.set("value", str(int(value)))
+    resolver = mi.file_resolver()
+    saved = mi.FileResolver(resolver)
+    resolver.prepend(str(path.resolve().parent))
+    try:
+        return mi.load_string(ET.tostring(root, encoding="unicode"))
+    finally:
+        mi.Thread.thread().set_file_resolver(saved)
+
+
 def load_scene(scene: Any, *, width: int | None = None, height: int | None = None):
     """A loaded ``mi.Scene`` from a scene dict, an XML path, ``"library:<name>"`` (a scene of the
     scene library, `data_gen.library`) or a loaded scene.
 
-    ``width`` / ``height`` override the film size of dicts and XML files (XML via the
-    ``resx``/``resy`` defaults when the file declares them, else by editing the loaded dict is not
-    possible, so they must match).
+    ``width`` / ``height`` override the film size of dicts and XML files: an XML that declares both
+    ``<default name="resx">`` and ``"resy"`` gets them as those parameters (the convention of
+    Mitsuba's own scenes and of the scene library); any other XML has its sensor's ``<film>`` width
+    and height entries replaced in a copy of its text, loaded with the file's folder first on
+    Mitsuba's file resolver (so its relative paths resolve as before). An XML without a ``<film>``
+    in a ``<sensor>`` cannot be resized: the error says what to add.
     """
     setup_mitsuba()
     import mitsuba as mi
@@ -358,13 +393,15 @@ def load_scene(scene: Any, *, width: int | None = None, height: int | None = Non
             raise SceneError(str(exc)) from None
     if isinstance(scene, (str, os.PathLike)):
         check_xml(scene)
-        kwargs = {}
-        if width is not None:
-            kwargs["resx"] = int(width)
-        if height is not None:
-            kwargs["resy"] = int(height)
+        declared = _declared_defaults(Path(scene))
+        sized = width is not None or height is not None
         try:
-            return mi.load_file(os.fspath(scene), **kwargs)
+            if not sized or {"resx", "resy"} <= declared:
+                kwargs = {k: int(v) for k, v in (("resx", width), ("resy", height)) if v is not None}
+                return mi.load_file(os.fspath(scene), **kwargs)
+            return _load_resized(mi, Path(scene), width, height)
+        except SceneError:
+            raise
         except Exception as exc:  # noqa: BLE001 - Mitsuba raises RuntimeError with a long message
             msg = str(exc).strip().splitlines()
             raise SceneError(f"Mitsuba could not load scene file '{scene}': {msg[-1] if msg else exc}") from None

@@ -1,6 +1,6 @@
 """One shot (noisy renders at several spp and instances + a reference) in the bench layout, resumable.
 
-Layout (DESIGN.md "Data folders"): ``out_dir/spp{spp:04d}_{instance:02d}.exr`` noisy renders,
+Layout (docs/architecture.md "Data folders"): ``out_dir/spp{spp:04d}_{instance:02d}.exr`` noisy renders,
 ``out_dir/reference.exr`` the reference, ``out_dir/shot.json`` the shot's manifest record. A file is
 skipped on a re-run when it exists, its checksum matches the record and the record's settings equal
 the requested ones; every file is written to a temporary name and renamed (``jaxdenoise.io`` and

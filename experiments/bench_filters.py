@@ -12,7 +12,7 @@ in the same run, on the same machine:
 - memory: XLA's compiled temporary buffer size of ``ours`` forward (and backward with ``--grad``)
   at the full size, against the ``H x W x 55^2`` weight tensor a materializing filter would need.
 
-Timing protocol (DESIGN.md): ahead-of-time compile (timed separately, and XLA's temporary buffer
+Timing protocol (docs/architecture.md): ahead-of-time compile (timed separately, and XLA's temporary buffer
 size read from it), one warm-up call, then the median of ``--runs`` (>= 5) calls. Writes
 ``docs/results/bench_filters.json`` and ``docs/results/filters.md`` (`page`: the page from the JSON alone).
 
@@ -87,7 +87,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="docs/results")
     a = ap.parse_args(argv)
     if a.runs < 5:
-        raise SystemExit("bench_filters: --runs must be >= 5 (DESIGN.md timing protocol)")
+        raise SystemExit("bench_filters: --runs must be >= 5 (docs/architecture.md timing protocol)")
     w, h = (int(s) for s in a.size.split("x"))
     nw, nh = (int(s) for s in a.naive_size.split("x"))
     r = a.radius

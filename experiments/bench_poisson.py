@@ -310,7 +310,7 @@ def page(res: dict) -> str:
            f"Times are medians of {cfg['repeats']:d} runs after a warm-up (3 runs when one run takes over 5 s); "
            "compile = first call minus median. Residual = max over channels of ||A x - b|| / ||b|| of the L2 "
            "normal equations, evaluated in float64 on the float32 result. RelMSE against the clean image "
-           "(DESIGN.md metric).", ""]
+           "(docs/architecture.md metric).", ""]
     if cfg["frame"] is None:
         nz = cfg["noise"]
         f = {k: repr(float(nz[k])) for k in ("base_sigma", "base_outlier_scale", "grad_sigma", "grad_outlier_scale")}

@@ -9,7 +9,7 @@ The search never sees benchmark frames: it reads a data folder made for it (dist
 Procedure (docs/methods/bilateral.md): every noisy render of every shot is prepared once (feature
 prefilter, Sec. 3.2, which does not depend on the bandwidths); the cross filter plus spike removal
 is jitted once with the lambdas as traced scalars; every configuration is scored by the mean
-RelMSE (DESIGN.md convention, eps = 0.01) over all frames. Stage 1 scores the full grid below with
+RelMSE (docs/architecture.md convention, eps = 0.01) over all frames. Stage 1 scores the full grid below with
 one feature bandwidth shared by all features; stage 2 starts from its best and does coordinate
 descent (``--passes`` sweeps) over each feature's own bandwidth, then over the stage-1 axes.
 Bandwidths are ``theta`` (``lambda = 1 / (2 theta^2)``; "off" = lambda 0). The window radius is fixed

@@ -8,6 +8,7 @@ Public API::
     infer = jd.load("lbf")                           # jitted inference function
     video = jd.denoise_sequence(frames, method="lbf") # a sequence (recurrent / windowed / per frame)
     jd.method_names()                                # registered method names
+    jd.write_image("out.exr", image); jd.write_display("out.png", image, exposure=0)  # linear / sRGB
 """
 from .api import denoise, denoise_sequence, load
 from .buffers import Buffers, BuffersError, stack
@@ -17,7 +18,8 @@ from .methods import names as method_names
 
 # EXR I/O needs OpenImageIO; it is imported on first use so that `jaxdenoise` and its training path
 # import on machines without it (a GPU box training from an exported cache).
-_IO_NAMES = ("ExrError", "read_buffers", "read_image", "read_sequence", "write_buffers", "write_image")
+_IO_NAMES = ("ExrError", "read_buffers", "read_image", "read_sequence", "write_buffers", "write_image",
+             "write_display")
 
 
 def __getattr__(name: str):
@@ -29,10 +31,10 @@ def __getattr__(name: str):
 
 # The one version number (pyproject.toml reads it): bumped whenever outputs change (a method's
 # result, a file format, a weight), each bump listed in CHANGELOG.md.
-__version__ = "0.3.0"
+__version__ = "0.4.0"
 
 __all__ = [
     "Buffers", "BuffersError", "ExrError", "JaxdenoiseError", "JaxdenoiseWarning", "MethodError", "denoise", "denoise_sequence", "load", "method_names",
-    "read_buffers", "read_image", "read_sequence", "stack", "write_buffers", "write_image",
+    "read_buffers", "read_image", "read_sequence", "stack", "write_buffers", "write_image", "write_display",
     "__version__",
 ]

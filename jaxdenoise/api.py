@@ -18,7 +18,7 @@ import numpy as np
 from . import checkpoint
 from .buffers import Buffers, BuffersError
 from .errors import JaxdenoiseWarning
-from .inference import inference_fn, notes, prepare
+from .inference import clamp_note, inference_fn, nonnegative, notes, prepare
 from .methods import Method, MethodError, get
 
 
@@ -84,14 +84,15 @@ def choose_method(buffers: Buffers) -> str:
         if m.required() <= have and m.requirements() is None:
             return name
     raise MethodError(f"method 'auto': no method of {list(PREFERENCE)} runs on a frame with {sorted(have)}; "
-                      f"name one (jaxdenoise methods lists them and what they need), install OIDN (pyoidn), "
+                      f"name one (jaxdenoise methods lists them and what they need), install OIDN (pip install 'jaxdenoise[oidn]'; from a clone: pip install -e '.[oidn]'), "
                       f"or render the buffers a method needs (python -m data_gen render SCENE --methods NAME)")
 
 
 def denoise(buffers: Buffers, method: str = AUTO, params: Any = None, *,
             weights: str | os.PathLike | None = None) -> np.ndarray:
     """Denoise one frame (or a batch) with a registered method (default: `choose_method`'s pick for
-    the frame); returns a float32 numpy image."""
+    the frame); returns a float32 numpy image, non-negative (`inference.OUTPUT_POLICY`: a warning
+    counts the pixels set to 0)."""
     if method == AUTO and isinstance(buffers, Buffers):
         method = choose_method(buffers)
     if isinstance(method, str) and params is None and weights is None:
@@ -102,8 +103,15 @@ def denoise(buffers: Buffers, method: str = AUTO, params: Any = None, *,
         m, params = resolve(method, weights)
     prepared = prepare(m, buffers)
     warn_notes(m, buffers)
-    out = inference_fn(m)(params, prepared)
-    return np.asarray(out, dtype=np.float32)
+    return _finished(m, inference_fn(m)(params, prepared))
+
+
+def _finished(m: Method, image: Any) -> np.ndarray:
+    """``image`` under the output policy, with one warning when it changed pixels."""
+    image, clamped = nonnegative(image)
+    if clamped:
+        warnings.warn(clamp_note(m.name, clamped), JaxdenoiseWarning, stacklevel=3)
+    return image
 
 
 def warn_notes(m: Method, buffers: Buffers, *, sequence: bool = False) -> None:
@@ -117,7 +125,7 @@ def denoise_sequence(frames, method: str = AUTO, params: Any = None, *,
     """Denoise a video: ``frames`` is an iterable of single-frame `Buffers` in time order (or one
     `Buffers` with a leading time axis). Recurrent methods carry their state, windowed ones (LBF)
     read their neighbours, others run frame by frame (`jaxdenoise.sequence`). Returns
-    ``(T, H, W, 3)`` float32."""
+    ``(T, H, W, 3)`` float32, non-negative (`inference.OUTPUT_POLICY`, one warning per call)."""
     from .sequence import run_all
 
     frames = unstack(frames)
@@ -129,7 +137,18 @@ def denoise_sequence(frames, method: str = AUTO, params: Any = None, *,
         m, params = resolve(method, weights)
     if frames and isinstance(frames[0], Buffers):
         warn_notes(m, frames[0], sequence=True)  # once per call: the first frame's
-    return run_all(m, params, frames)
+    return _finished(m, run_all(m, params, frames))
+
+
+def _finished_stream(m: Method, images):
+    """The frames of a sequence under the output policy, with one warning at the end of the stream."""
+    clamped = 0
+    for image in images:
+        image, n = nonnegative(image)
+        clamped += n
+        yield image
+    if clamped:
+        warnings.warn(clamp_note(m.name, clamped), JaxdenoiseWarning, stacklevel=2)
 
 
 def unstack(frames) -> list[Buffers]:
@@ -152,17 +171,19 @@ def unstack(frames) -> list[Buffers]:
 
 
 def load(method: str, path: str | os.PathLike | None = None) -> Callable[[Buffers], Any]:
-    """A jitted ``fn(buffers) -> image`` with the method's parameters bound (shipped, or ``path``).
+    """A jitted ``fn(buffers) -> image`` with the method's parameters bound (shipped, or ``path``);
+    the image is float32 numpy under the output policy, as `denoise` returns it.
 
     ``fn.sequence(frames)`` runs the same method and parameters over a video through the sequence
-    driver (a generator of denoised frames, in order; see `denoise_sequence`)."""
+    driver (a generator of denoised frames, in order; see `denoise_sequence`; one warning at the
+    end when the policy changed pixels)."""
     m, params = resolve(method, path)
     fn = inference_fn(m)
 
     def infer(buffers: Buffers):
         prepared = prepare(m, buffers)
         warn_notes(m, buffers)
-        return fn(params, prepared)
+        return _finished(m, fn(params, prepared))
 
     def sequence(frames):
         from .sequence import run
@@ -170,7 +191,7 @@ def load(method: str, path: str | os.PathLike | None = None) -> Callable[[Buffer
         frames = unstack(frames)
         if frames:
             warn_notes(m, frames[0], sequence=True)  # once per video: the first frame's
-        return run(m, params, frames)
+        return _finished_stream(m, run(m, params, frames))
 
     infer.method = m  # type: ignore[attr-defined]
     infer.params = params  # type: ignore[attr-defined]

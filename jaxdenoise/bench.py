@@ -1,4 +1,4 @@
-"""Error against run time: the harness behind ``jaxdenoise bench`` (DESIGN.md "Error against run time").
+"""Error against run time: the harness behind ``jaxdenoise bench`` (docs/architecture.md "Error against run time").
 
 A data folder is read by `jaxdenoise.data` (shots, renders with their header ``spp``, and
 ``frame_XXXX/`` sequences). Every chosen method runs on every render (its output is kept, as half
@@ -18,6 +18,11 @@ frames, a gradient pass (``dx``, ``dy``; with ``--primal gpt`` the colour too). 
 any other method the buffer pass alone. Each record also keeps the whole frame's time
 (``frame_render_seconds``) and the raw input's error on that frame (``input_relmse``), so every
 table row shows the error it started from and flags a method that made the image worse.
+
+Output policy (`inference.OUTPUT_POLICY`): every image is scored as the user gets it, negative
+samples set to 0; each record counts the pixels changed (``negative_clamped``), its notes say so
+(`CLAMP_NOTE`) and each summary row sums them. The policy is applied on the host after the timed calls
+(outside the measured time).
 
 Memory, one quantity per column (docs/metrics.md):
 
@@ -43,7 +48,7 @@ import numpy as np
 
 from . import metrics
 from .api import resolve
-from .inference import buffers_read, inference_fn, notes, prepare
+from .inference import buffers_read, inference_fn, nonnegative, notes, prepare
 from .buffers import Buffers
 from .data import Render, Shot, discover, sequences
 from .fsutil import atomic_path, write_json, write_text
@@ -97,6 +102,9 @@ class _RssPeak:
             return 0
 
 
+CLAMP_NOTE = "negative output radiance set to 0 (output policy; pixels counted in negative_clamped)"
+
+
 def _block(x):
     return jax.block_until_ready(x)
 
@@ -119,7 +127,8 @@ def time_method(m: Method, params: Any, buffers: Buffers, *, runs: int = MIN_RUN
             t0 = time.perf_counter()
             out = _block(fn(params, buffers))
             times.append(time.perf_counter() - t0)
-    return {"image": np.asarray(out, dtype=np.float32), "seconds": statistics.median(times),
+    image, clamped = nonnegative(out)  # what the user gets (inference.OUTPUT_POLICY); not timed
+    return {"image": image, "negative_clamped": clamped, "seconds": statistics.median(times),
             "seconds_all": times, "compile_seconds": compile_s, "rss_peak_bytes": int(rss.bytes),
             "xla_bytes": None if xla_bytes is None else int(xla_bytes)}
 
@@ -145,7 +154,9 @@ def time_sequence(m: Method, params: Any, frames: list[Buffers], *, runs: int = 
             out = run_all(m, params, frames, names=names)
             times.append(time.perf_counter() - t0)
     med = statistics.median(times)
-    return {"images": out, "seconds": med / t_len, "seconds_all": [t / t_len for t in times],
+    finished = [nonnegative(x) for x in out]  # inference.OUTPUT_POLICY, per frame; not timed
+    return {"images": np.stack([x[0] for x in finished]), "negative_clamped": [x[1] for x in finished],
+            "seconds": med / t_len, "seconds_all": [t / t_len for t in times],
             "compile_seconds": max(0.0, warm - med), "rss_peak_bytes": int(rss.bytes), "xla_bytes": None}
 
 
@@ -171,11 +182,11 @@ def _score_task(render: str, reference: str, methods: list[str], weights: dict) 
             if missing:
                 out.append({"method": name, "skipped": f"frame lacks buffer(s) {missing}"})
                 continue
-            image = np.asarray(inference_fn(m)(params, prepare(m, buffers, where=render)), np.float32)
+            image, clamped = nonnegative(inference_fn(m)(params, prepare(m, buffers, where=render)))
         except MethodError as e:
             out.append({"method": name, "skipped": str(e)})
             continue
-        out.append({"method": name, **score(image, ref)})
+        out.append({"method": name, "negative_clamped": clamped, **score(image, ref)})
     return out
 
 
@@ -276,8 +287,10 @@ def run(data_dir: str | os.PathLike, methods: Iterable[str], out_dir: str | os.P
                     skipped.append({"method": name, "file": str(render.path.relative_to(data_dir)), "reason": str(e)})
                     bar.update(1)
                     continue
+                clamped = r["negative_clamped"]
                 rec = _record(shot, render, name, r, r["image"], ref, data_dir, buffers, buffers_read(m, buffers),
-                              notes=notes(m, buffers))
+                              negative_clamped=clamped,
+                              notes=notes(m, buffers) + ([CLAMP_NOTE] if clamped else []))
                 if d is not None:  # the quality columns as the workers computed them
                     rec.update({k: d[k] for k in ("relmse", "ssim", "psnr")})
                 rec["reference_image"] = store.add(f"ref:{rec['shot']}:{shot.reference.name}", ref)
@@ -305,9 +318,10 @@ def run(data_dir: str | os.PathLike, methods: Iterable[str], out_dir: str | os.P
                     continue
                 r = time_sequence(m, params, frames, runs=runs, names=[str(x.path) for x in renders])
                 recs = [_record(s, x, name, r, img, ref, data_dir, b, buffers_read(m, b),
-                                sequence=_relative(seq.folder, data_dir), frame=s.frame,
-                                notes=notes(m, b, sequence=True))
-                        for s, x, img, ref, b in zip(seq.shots, renders, r["images"], refs, frames)]
+                                sequence=_relative(seq.folder, data_dir), frame=s.frame, negative_clamped=c,
+                                notes=notes(m, b, sequence=True) + ([CLAMP_NOTE] if c else []))
+                        for s, x, img, ref, b, c in zip(seq.shots, renders, r["images"], refs, frames,
+                                                        r["negative_clamped"])]
                 for rec, img, ref, s in zip(recs, r["images"], refs, seq.shots):
                     rec["reference_image"] = store.add(f"ref:{rec['sequence']}/{s.name}", ref)
                     rec["image_id"] = store.add(f"{rec['file']}|{name}", img)
@@ -331,10 +345,12 @@ def run(data_dir: str | os.PathLike, methods: Iterable[str], out_dir: str | os.P
 def _untimed(m: Method, params: Any, buffers: Buffers, where: str, scored: dict | None) -> dict:
     """The record fields of an untimed run (``timing=False``): the image (unless the workers scored
     it already), no seconds, no memory."""
-    image = None
+    image, clamped = None, None
     if scored is None:
-        image = np.asarray(inference_fn(m)(params, prepare(m, buffers, where=where)), np.float32)
-    return {"image": image, "seconds": None, "seconds_all": [], "compile_seconds": None, "rss_peak_bytes": None,
+        image, clamped = nonnegative(inference_fn(m)(params, prepare(m, buffers, where=where)))
+    else:
+        clamped = scored.get("negative_clamped")
+    return {"image": image, "negative_clamped": clamped, "seconds": None, "seconds_all": [], "compile_seconds": None, "rss_peak_bytes": None,
             "xla_bytes": None}
 
 
@@ -386,6 +402,7 @@ def summarize(records: list[dict]) -> list[dict]:
             "render_seconds": float(np.median(render)) if all(x is not None for x in render) else None,
             "input_relmse": float(np.mean([r["input_relmse"] for r in rs])),
             "buffers": sorted({b for r in rs for b in r.get("buffers", [])}),
+            "negative_clamped": sum(int(r.get("negative_clamped") or 0) for r in rs),
             "notes": _row_notes(rs),
         })
     return rows

@@ -1,4 +1,4 @@
-"""`Buffers`: the frozen pytree of per-pixel inputs every method reads (DESIGN.md "Data contract").
+"""`Buffers`: the frozen pytree of per-pixel inputs every method reads (docs/architecture.md "Data contract").
 
 Arrays are float32, height x width x channels; a batch adds a leading axis and a sequence a
 leading time axis, so validation compares every dimension but the last across fields. A buffer
@@ -14,7 +14,7 @@ import jax
 import numpy as np
 from .errors import JaxdenoiseError
 
-# field -> EXR channel names, in order (DESIGN.md "One EXR per frame"). Feature variances are one
+# field -> EXR channel names, in order (docs/architecture.md "Data contract"). Feature variances are one
 # channel per layer (the mean of the per-channel variances of the pixel mean).
 CHANNELS: dict[str, tuple[str, ...]] = {
     "color": ("R", "G", "B"),
@@ -40,11 +40,13 @@ IMAGE_FIELDS: tuple[str, ...] = tuple(CHANNELS)
 # Features whose variance is a separate field (Kalantari 2015 Eq. 12 uses a per-feature variance).
 FEATURES: tuple[str, ...] = ("albedo", "albedo2", "normal", "position", "depth", "visibility", "roughness")
 # Per-frame metadata: travels with the frame through every path (`Buffers.only`, `stack`, batches,
-# sequences) whatever a method reads, so no selection of buffers can drop it (DESIGN.md "Methods").
+# sequences) whatever a method reads, so no selection of buffers can drop it (docs/architecture.md "Methods").
 METADATA_FIELDS: tuple[str, ...] = ("spp", "world_to_camera", "world_to_ndc")
 # Metadata that is a 4x4 matrix per frame (`jaxdenoise.view` documents the conventions).
 MATRIX_FIELDS: tuple[str, ...] = ("world_to_camera", "world_to_ndc")
 ALL_FIELDS: tuple[str, ...] = IMAGE_FIELDS + METADATA_FIELDS
+# The OpenEXR standard header attribute that carries each matrix (`jaxdenoise.io` reads and writes them).
+MATRIX_HEADERS: dict[str, str] = {"world_to_camera": "worldToCamera", "world_to_ndc": "worldToNDC"}
 
 
 class BuffersError(JaxdenoiseError):
@@ -154,10 +156,16 @@ class Buffers:
         if bufs:
             parts.append(f"buffer(s) {bufs}")
         if meta:
-            how = "the integer 'spp' header attribute of an EXR, or Buffers(spp=...)" if meta == ["spp"] else \
-                ("the EXR header attributes 'spp', 'worldToCamera' and 'worldToNDC' (data_gen writes them), "
-                 "or Buffers(spp=..., world_to_camera=..., world_to_ndc=...)")
-            parts.append(f"the frame's {meta} (e.g. {how}; never guessed)")
+            hows = []
+            if "spp" in meta:
+                hows.append("the sample count: the integer 'spp' header attribute, which data_gen writes; for a file "
+                            "without one read_buffers(..., spp=N), CLI --spp N, or Buffers(spp=...)")
+            cams = [f for f in meta if f in MATRIX_FIELDS]
+            if cams:
+                names = " and ".join(f"'{MATRIX_HEADERS[f]}'" for f in cams)
+                hows.append(f"the camera: the 4x4 EXR header matrix attribute(s) {names}, which data_gen writes "
+                            f"(Mitsuba's own films carry none), or Buffers({', '.join(f + '=...' for f in cams)})")
+            parts.append(f"the frame's {meta} ({'; '.join(hows)}; never guessed)")
         raise BuffersError(
             f"{prefix}method '{method}' needs {' and '.join(parts)}, which this input lacks "
             f"(present: {sorted(self.present())}); render them with `python -m data_gen render SCENE "
@@ -225,7 +233,7 @@ def stack(frames: Iterable[Buffers]) -> Buffers:
 
 def map_frames(fn: Any, buffers: Buffers) -> Any:
     """``fn(frame) -> (H, W, C)`` over every frame of ``buffers``: a single ``(H, W, C)`` frame goes
-    straight to ``fn``; leading axes are a batch of independent frames (DESIGN.md "Methods"), run one
+    straight to ``fn``; leading axes are a batch of independent frames (docs/architecture.md "Methods"), run one
     frame at a time with ``jax.lax.map`` (the memory of one frame's intermediates, one compiled
     body). A scalar ``spp`` (or a single camera matrix) applies to every frame of the batch."""
     lead = tuple(np.shape(buffers.color)[:-3])

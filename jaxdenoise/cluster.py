@@ -1,5 +1,6 @@
-"""Connecting to Dask (the ``cluster`` extra: ``pip install -e '.[cluster]'``), the one place that
-does: `bench --scheduler` here and `python -m data_gen dataset --scheduler` (`data_gen.cluster`).
+"""Connecting to Dask (the ``cluster`` extra: ``pip install 'jaxdenoise[cluster]'``, from a clone
+``pip install -e '.[cluster]'``), the one place that does: `bench --scheduler` here and
+`python -m data_gen dataset --scheduler` (`data_gen.cluster`).
 
 ``local[:N]`` starts a `distributed.LocalCluster` of N single-threaded worker processes (default:
 one per core) whose XLA runs single-threaded (``XLA_FLAGS``, ``OMP_NUM_THREADS``), so N workers never
@@ -12,7 +13,7 @@ from .errors import JaxdenoiseError, MissingDependency
 
 __all__ = ["connect", "distributed_module", "EXTRA_HINT"]
 
-EXTRA_HINT = "pip install -e '.[cluster]' (Dask's distributed scheduler)"
+EXTRA_HINT = "pip install 'jaxdenoise[cluster]' (from a clone: pip install -e '.[cluster]')"
 _WORKER_ENV = {"OMP_NUM_THREADS": "1", "JAX_PLATFORMS": "cpu",
                "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"}
 

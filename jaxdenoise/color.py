@@ -1,4 +1,4 @@
-"""Transfer functions as forward/inverse pairs (DESIGN.md "Layout": ``color.py``).
+"""Transfer functions as forward/inverse pairs (docs/architecture.md "Layout": ``color.py``).
 
 Every function is pure ``jax.numpy``, jittable, elementwise, and accepts numpy or jax arrays of
 any shape. The range compressors (`gamma`, `log_transform`, `mu_law`) are extended to negative
@@ -24,7 +24,7 @@ from .errors import JaxdenoiseError
 
 # Default mu of the mu-law compressor: Guo et al. 2019, Sec. 4.2, "we empirically set mu = 16".
 MU_DEFAULT = 16.0
-# Display gamma of the tone map used by the metrics (DESIGN.md "Error against run time").
+# Display gamma of the tone map used by the metrics (docs/architecture.md "Error against run time").
 GAMMA_DEFAULT = 2.2
 # Albedo epsilon of Bako et al. 2017, Sec. 4.1 (``c / (albedo + 0.00316)``).
 ALBEDO_EPS_DEFAULT = 0.00316
@@ -105,6 +105,27 @@ def inv_mu_law(y: Any, mu: float = MU_DEFAULT) -> jnp.ndarray:
     return _odd(lambda a: jnp.expm1(a * lg) / mu, _float(y))
 
 
+# -- sRGB ----------------------------------------------------------------------------------------
+def srgb(x: Any) -> jnp.ndarray:
+    """The sRGB transfer function (IEC 61966-2-1): ``12.92 x`` up to 0.0031308, else
+    ``1.055 x ** (1 / 2.4) - 0.055``; extended to x < 0 as an odd function. The encoding of every
+    8-bit image the library writes (`jaxdenoise.io.write_display`)."""
+    def encode(a):
+        lin = a <= 0.0031308  # the power branch sees only its own arguments: finite gradients at 0
+        return jnp.where(lin, 12.92 * a, 1.055 * jnp.power(jnp.where(lin, 1.0, a), 1.0 / 2.4) - 0.055)
+
+    return _odd(encode, _float(x))
+
+
+def inv_srgb(y: Any) -> jnp.ndarray:
+    """Inverse of `srgb`: ``y / 12.92`` up to 0.04045, else ``((y + 0.055) / 1.055) ** 2.4``."""
+    def decode(a):
+        lin = a <= 0.04045
+        return jnp.where(lin, a / 12.92, jnp.power((jnp.where(lin, 1.0, a) + 0.055) / 1.055, 2.4))
+
+    return _odd(decode, _float(y))
+
+
 # -- tone map used by the metrics ------------------------------------------------------------------
 def tonemap(x: Any, g: float = GAMMA_DEFAULT) -> jnp.ndarray:
     """``clip(x, 0, 1) ** (1 / g)``: the display mapping under which SSIM and PSNR are measured.
@@ -168,8 +189,9 @@ IDENTITY = Transfer("identity", _identity, _identity)
 GAMMA = Transfer("gamma", gamma, inv_gamma)
 LOG = Transfer("log", log_transform, inv_log_transform)
 MU_LAW = Transfer("mu-law", mu_law, inv_mu_law)
+SRGB = Transfer("srgb", srgb, inv_srgb)
 
-TRANSFERS: dict[str, Transfer] = {t.name: t for t in (IDENTITY, GAMMA, LOG, MU_LAW)}
+TRANSFERS: dict[str, Transfer] = {t.name: t for t in (IDENTITY, GAMMA, LOG, MU_LAW, SRGB)}
 
 
 def transfer(name: str) -> Transfer:
@@ -182,6 +204,6 @@ def transfer(name: str) -> Transfer:
 
 __all__ = [
     "ALBEDO_EPS_DEFAULT", "GAMMA_DEFAULT", "MU_DEFAULT", "Transfer", "TRANSFERS", "IDENTITY", "GAMMA",
-    "LOG", "MU_LAW", "transfer", "gamma", "inv_gamma", "log_transform", "inv_log_transform", "mu_law",
+    "LOG", "MU_LAW", "SRGB", "transfer", "srgb", "inv_srgb", "gamma", "inv_gamma", "log_transform", "inv_log_transform", "mu_law",
     "inv_mu_law", "tonemap", "demodulate", "remodulate",
 ]

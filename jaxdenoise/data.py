@@ -1,4 +1,4 @@
-"""Data folders (DESIGN.md "Error against run time": data folders): shots, their renders, sequences.
+"""Data folders (docs/architecture.md "Error against run time": data folders): shots, their renders, sequences.
 
 A folder is walked recursively (linked folders followed); every folder holding a ``reference.exr``
 is one **shot**, and every other EXR in it is a noisy **render** of that shot. A render's sample

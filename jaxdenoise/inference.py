@@ -1,6 +1,7 @@
 """A method's inference on frames, below every entry point (`api`, `sequence`, `bench`, `train`):
 `prepare` validates a frame for a method and keeps what it reads; `inference_fn` is its jitted
-function, compiled once per input signature with XLA's memory estimate checked first (`Compiled`).
+function, compiled once per input signature with XLA's memory estimate checked first (`Compiled`);
+`nonnegative` applies the output policy (`OUTPUT_POLICY`) where an image leaves the library.
 """
 from __future__ import annotations
 
@@ -14,8 +15,33 @@ import numpy as np
 from .buffers import Buffers, BuffersError
 from .methods import Method, MethodError
 
-__all__ = ["Compiled", "available_memory", "check_finite", "inference_fn", "prepare", "buffers_read",
-           "missing_optional", "notes", "regime"]
+__all__ = ["Compiled", "OUTPUT_POLICY", "available_memory", "check_finite", "inference_fn", "prepare",
+           "buffers_read", "missing_optional", "nonnegative", "clamp_note", "notes", "regime"]
+
+OUTPUT_POLICY = (
+    "every denoised image leaves the library as radiance, which is never negative: a negative sample "
+    "of a method's output is set to 0 and the pixels changed are counted (the API warns, the CLI writes "
+    "the count into the output's header as 'jaxdenoise:negative_clamped' and into its config, bench "
+    "records it as 'negative_clamped'). Only the screened-Poisson solvers produce such samples: an "
+    "unconstrained least-squares solve overshoots below 0 beside strong edges (docs/guide.md)")
+
+
+def nonnegative(image: Any) -> tuple[np.ndarray, int]:
+    """``(image as float32 numpy with negative samples set to 0, pixels changed)``: `OUTPUT_POLICY`,
+    applied where a denoised image leaves the library (the API, the CLI, bench), never inside a
+    method (a method's own output, and its gradients, stay what the paper defines)."""
+    image = np.asarray(image, dtype=np.float32)
+    negative = image < 0
+    if not negative.any():
+        return image, 0
+    changed = int(negative.any(axis=-1).sum()) if image.ndim >= 3 else int(negative.sum())
+    return np.where(negative, np.float32(0), image), changed
+
+
+def clamp_note(name: str, count: int) -> str:
+    """The one-line remark on ``count`` pixels of ``name``'s output set to 0 (`OUTPUT_POLICY`)."""
+    return (f"{name}: {count} pixel(s) of the output had negative radiance and were set to 0 "
+            f"(the output policy: docs/guide.md, \"Outputs\")")
 
 
 def check_finite(buffers: Buffers, names, *, where: str | None = None) -> None:
@@ -28,7 +54,7 @@ def check_finite(buffers: Buffers, names, *, where: str | None = None) -> None:
         bad = int(np.size(value) - np.isfinite(np.asarray(value, dtype=np.float32)).sum())
         if bad:
             raise BuffersError(f"{where + ': ' if where else ''}buffer '{name}' has {bad} NaN/Inf value(s); "
-                               f"repair the input first (jaxdenoise.io.read_buffers(..., repair='zero'))")
+                               f"repair the input first (jaxdenoise.io.read_buffers(..., repair='zero'), CLI --repair)")
 
 
 def available_memory() -> int:
@@ -106,7 +132,9 @@ def prepare(m: Method, buffers: Buffers, *, where: str | None = None) -> Buffers
     and the frame's metadata (``spp``; `Buffers.only` never drops it). ``where`` (e.g. the file
     name) goes into every error."""
     if not isinstance(buffers, Buffers):
-        raise BuffersError(f"{where + ': ' if where else ''}expected a jaxdenoise.Buffers, got {type(buffers).__name__}")
+        raise BuffersError(f"{where + ': ' if where else ''}expected a jaxdenoise.Buffers, got {type(buffers).__name__}: "
+                           f"wrap the image, jd.Buffers(color=image) (HxWx3 float32 linear radiance; add albedo=, "
+                           f"normal=, ... for the methods that read them), or read a file with jd.read_buffers(path)")
     buffers.check_needs(m.required(), m.name, where=where)
     used = buffers_read(m, buffers)
     check_finite(buffers, used, where=where)

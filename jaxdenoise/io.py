@@ -1,4 +1,4 @@
-"""EXR read/write through OpenImageIO (the only module that imports it), DESIGN.md "Data contract".
+"""EXR read/write through OpenImageIO (the only module that imports it), docs/architecture.md "Data contract".
 
 One multi-channel EXR per frame. Channel names follow `jaxdenoise.buffers.CHANNELS`
 (``R G B``, ``var.R/G/B``, ``albedo.R/G/B``, ``N.X/Y/Z``, ``Z``, ``vis``, ``<layer>.var`` ...);
@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import glob as _glob
 import os
+import re
 import warnings
 from pathlib import Path
 from typing import Any, Mapping
@@ -20,13 +21,13 @@ from typing import Any, Mapping
 import numpy as np
 import OpenImageIO as oiio
 
-from .buffers import CHANNELS, IMAGE_FIELDS, Buffers, BuffersError
+from .buffers import CHANNELS, IMAGE_FIELDS, MATRIX_HEADERS, Buffers, BuffersError
 from .fsutil import atomic_path
-from .errors import JaxdenoiseError
+from .errors import JaxdenoiseError, JaxdenoiseWarning
 
 __all__ = [
-    "ExrError", "REPAIR_POLICY", "read_buffers", "read_image", "read_sequence", "write_buffers",
-    "write_image", "read_header",
+    "ExrError", "REPAIR_POLICY", "AOV_ALIASES", "LAYER_KEYS", "DISPLAY_SUFFIXES", "parse_channels", "read_buffers", "read_image", "read_sequence",
+    "write_buffers", "write_image", "write_display", "write_output", "read_header",
 ]
 
 REPAIR_POLICY = (
@@ -145,13 +146,13 @@ def _check_values(path: Path, field: str, names: tuple[str, ...], arr: np.ndarra
             n_inf = int(np.isinf(arr[..., i]).sum())
             if n_nan or n_inf:
                 raise ExrError(f"{path}: channel '{ch}' has {n_nan} NaN and {n_inf} Inf pixel(s); "
-                               f"pass repair='zero' to replace them ({REPAIR_POLICY})")
+                               f"pass repair='zero' (CLI: --repair) to replace them ({REPAIR_POLICY})")
         for i, ch in enumerate(names):
             n_neg = int(bad_neg[..., i].sum())
             if n_neg:
                 what = "radiance" if field == "color" else "variance"
                 raise ExrError(f"{path}: channel '{ch}' has {n_neg} negative {what} pixel(s) "
-                               f"(min {float(arr[..., i].min()):.3g}); pass repair='zero' to clamp them")
+                               f"(min {float(arr[..., i].min()):.3g}); pass repair='zero' (CLI: --repair) to clamp them")
     arr = arr.copy()
     for i, ch in enumerate(names):
         count = int((bad_finite[..., i] | bad_neg[..., i]).sum())
@@ -161,46 +162,201 @@ def _check_values(path: Path, field: str, names: tuple[str, ...], arr: np.ndarra
     return arr
 
 
+# -- channel names other renderers write --------------------------------------------------------
+# A layer's key (what ``channels=`` maps, beside the `Buffers` field names): the contract's channel
+# prefix (``N`` for ``N.X N.Y N.Z``, ``var`` for ``var.R ...``), or the channel itself for a
+# one-channel layer (``Z``, ``vis``, ``N.var``).
+LAYER_KEYS: dict[str, str] = {
+    (names[0] if len(names) == 1 else names[0].rpartition(".")[0] or "color"): field
+    for field, names in CHANNELS.items()}
+# What Mitsuba 3's ``aov`` integrator writes for the buffers it can make, under the names its docs and
+# users commonly give them (``aovs="nn:sh_normal,pp:position,dd:depth,albedo:albedo"``): it names an
+# AOV's channels ``<name>.X/Y/Z`` (vectors), ``<name>.R/G/B`` (colours) or ``<name>.T`` (one value).
+# Used, and reported in ``attrs['channels_from']``, when the contract's own names are absent.
+AOV_ALIASES: dict[str, tuple[str, ...]] = {
+    "normal": ("nn", "sh_normal", "normal", "normals"),
+    "position": ("pp", "position"),
+    "depth": ("dd", "depth", "Z"),
+    "albedo": ("albedo", "aa"),
+}
+# Suffixes of a three-component layer, in component order (first complete set wins), and of a
+# one-value layer.
+_SUFFIXES_3 = (("X", "Y", "Z"), ("R", "G", "B"), ("x", "y", "z"), ("r", "g", "b"))
+_SUFFIXES_1 = ("T", "Y", "y", "V", "A")
+# Layer prefixes that look like a buffer the reader knows: ignored channels under them are warned of.
+_LOOKALIKE = {**dict.fromkeys(("n", "nn", "normal", "normals", "sh_normal", "geo_normal"), "N"),
+              **dict.fromkeys(("p", "pp", "pos", "position"), "P"),
+              **dict.fromkeys(("d", "dd", "depth", "z", "distance"), "Z"),
+              **dict.fromkeys(("albedo", "aa", "diffuse"), "albedo"), **dict.fromkeys(("var", "variance"), "var")}
+_CHANNELS_HELP = ("channels={'N': 'nn', 'P': 'pp', 'Z': 'dd'} in the API, --channels N=nn,P=pp,Z=dd "
+                  "in the CLI (keys: a layer: N P Z albedo albedo2 var vis rough dx dy color, or a field name; or one channel: "
+                  "R=ch00, N.X=ch03)")
+
+
+def parse_channels(text: str) -> dict[str, str]:
+    """``"N=nn,P=pp,Z=dd"`` (the CLI's ``--channels``) as ``{"N": "nn", "P": "pp", "Z": "dd"}``."""
+    out: dict[str, str] = {}
+    for item in (t.strip() for t in text.split(",")):
+        key, eq, value = item.partition("=")
+        if not item or not eq or not key.strip() or not value.strip():
+            raise JaxdenoiseError(f"--channels '{text}': '{item}' is not KEY=NAME; expected e.g. N=nn,P=pp,Z=dd")
+        if key.strip() in out:
+            raise JaxdenoiseError(f"--channels '{text}': '{key.strip()}' is mapped twice")
+        out[key.strip()] = value.strip()
+    return out
+
+
+def _layer(chans: dict, prefix: str, n: int) -> tuple[str, ...] | None:
+    """The file's channels of layer ``prefix`` as an ``n``-component buffer, in component order."""
+    if n == 1:
+        if prefix in chans:
+            return (prefix,)
+        for suffix in _SUFFIXES_1:
+            if f"{prefix}.{suffix}" in chans:
+                return (f"{prefix}.{suffix}",)
+        return None
+    for suffixes in _SUFFIXES_3:
+        names = tuple(f"{prefix}.{x}" for x in suffixes)
+        if all(c in chans for c in names):
+            return names
+    return None
+
+
+def _resolve_channels(path: Path, chans: dict, channels: Mapping[str, str] | None) -> tuple[dict, dict]:
+    """``(field -> the file's channel names, field -> names taken from other than the contract)``:
+    explicit ``channels`` first, then the contract's names, then `AOV_ALIASES`."""
+    chosen: dict[str, tuple[str, ...]] = {}
+    per_channel: dict[str, dict[int, str]] = {}
+    channel_keys = {c: (f, i) for f, names in CHANNELS.items() for i, c in enumerate(names) if len(names) > 1}
+    for key, value in (channels or {}).items():
+        if not isinstance(key, str) or not isinstance(value, str):
+            raise JaxdenoiseError(f"channels: entries map a name to a name; got {key!r}: {value!r}")
+        if key in channel_keys:
+            field, i = channel_keys[key]
+            if value not in chans:
+                raise ExrError(f"{path}: channels maps '{key}' to '{value}', which the file does not have "
+                               f"(it has {sorted(chans)})")
+            per_channel.setdefault(field, {})[i] = value
+            continue
+        field = key if key in CHANNELS else LAYER_KEYS.get(key)
+        if field is None:
+            raise JaxdenoiseError(f"channels: unknown key '{key}'; expected a layer ({', '.join(LAYER_KEYS)}), "
+                                  f"a field ({', '.join(CHANNELS)}) or a channel ({', '.join(channel_keys)})")
+        names = _layer(chans, value, len(CHANNELS[field]))
+        if names is None:
+            under = sorted(c for c in chans if c == value or c.startswith(value + "."))
+            raise ExrError(f"{path}: channels maps '{key}' to '{value}', but the file has no "
+                           f"{len(CHANNELS[field])}-channel layer '{value}' (channels under it: {under or 'none'}; "
+                           f"the file has {sorted(chans)})")
+        chosen[field] = names
+    for field, parts in per_channel.items():
+        if field in chosen:
+            raise JaxdenoiseError(f"channels: '{field}' is mapped both as a layer and channel by channel")
+        names = CHANNELS[field]
+        if len(parts) != len(names):
+            raise JaxdenoiseError(f"channels: '{field}' is mapped channel by channel but only "
+                                  f"{[names[i] for i in sorted(parts)]}; map all of {list(names)}")
+        chosen[field] = tuple(parts[i] for i in range(len(names)))
+    sources = {f: list(v) for f, v in chosen.items()}
+    for field, names in CHANNELS.items():
+        if field in chosen:
+            continue
+        have = [n for n in names if n in chans]
+        if have:
+            if len(have) != len(names):
+                missing = [n for n in names if n not in chans]
+                raise ExrError(f"{path}: layer '{field}' is incomplete: has {have}, missing channel(s) {missing}")
+            chosen[field] = names
+            continue
+        found = {a: _layer(chans, a, len(names)) for a in AOV_ALIASES.get(field, ())}
+        found = {a: v for a, v in found.items() if v is not None and not set(v) & {c for u in chosen.values() for c in u}}
+        if len(found) > 1:
+            raise ExrError(f"{path}: layers {sorted(found)} could each be '{field}'; say which: {_CHANNELS_HELP}")
+        if found:
+            (names_found,) = found.values()
+            chosen[field] = names_found
+            sources[field] = list(names_found)
+    return chosen, sources
+
+
+def _unnamed_hint(chans: dict) -> str:
+    names = sorted(chans)
+    if names and all(re.fullmatch(r"ch\d+", c) for c in names):
+        return (f"; its channels are unnamed ({names[0]}..{names[-1]}: mi.Bitmap(tensor).write() writes a bare "
+                f"tensor so): write the film instead (scene.sensors()[0].film().write(path) after mi.render), "
+                f"or name them, e.g. channels={{'R': 'ch00', 'G': 'ch01', 'B': 'ch02'}} "
+                f"(CLI: --channels R=ch00,G=ch01,B=ch02,N.X=ch03,...)")
+    rgb = sorted({c.rpartition(".")[0] for c in names if c.endswith((".R", ".G", ".B")) and "." in c})
+    if rgb:
+        return f"; to read layer '{rgb[0]}' as the colour: channels={{'color': '{rgb[0]}'}} (CLI: --channels color={rgb[0]})"
+    return ""
+
+
 def read_buffers(path: str | os.PathLike, *, repair: str | None = None,
-                 required: tuple[str, ...] = ("color",)) -> tuple[Buffers, dict[str, Any]]:
+                 required: tuple[str, ...] = ("color",), channels: Mapping[str, str] | None = None,
+                 spp: int | None = None) -> tuple[Buffers, dict[str, Any]]:
     """Read one frame into `Buffers` and its header attributes.
 
     Optional layers absent from the file are ``None`` (never invented zeros). ``required`` lists
     `Buffers` fields that must be present. ``repair`` is ``None`` (fail on bad values) or
-    ``"zero"`` (`REPAIR_POLICY`). Channels outside the contract are ignored and listed in
-    ``attrs['ignored_channels']``.
+    ``"zero"`` (`REPAIR_POLICY`).
+
+    Files from other renderers: ``channels`` maps a layer (``N``, ``P``, ``Z``, ``albedo``, ...,
+    `LAYER_KEYS`, or a field name) to the file's layer (``{"N": "nn"}`` reads ``nn.X nn.Y nn.Z``;
+    ``.R/G/B``, ``.x/y/z`` and one-value ``.T``/``.Y`` suffixes are understood) or one channel to
+    one channel (``{"R": "ch00"}``). Without a mapping, the names Mitsuba's ``aov`` integrator is
+    commonly given (`AOV_ALIASES`: ``nn``, ``pp``, ``dd``, ``Z.T``, ...) are read where the contract's
+    own are absent; ``attrs['channels_from']`` lists every buffer not read under its own name.
+    ``spp`` gives the sample count when the header has none (Mitsuba writes none); a header that
+    has a different one is an error. Channels left unread are listed in ``attrs['ignored_channels']``,
+    with a `JaxdenoiseWarning` for those that look like a buffer (``n.X``, ``ch03``, ...).
     """
     if repair not in (None, "zero"):
         raise JaxdenoiseError(f"repair={repair!r}; expected None or 'zero'")
     path = Path(path)
     chans, attrs = _read_pixels(path)
+    chosen, sources = _resolve_channels(path, chans, channels)
     fields: dict[str, Any] = {}
-    known: set[str] = set()
     repaired: dict[str, int] = {}
-    for field, names in CHANNELS.items():
-        have = [n for n in names if n in chans]
-        known.update(have)
-        if not have:
-            continue
-        if len(have) != len(names):
-            missing = [n for n in names if n not in chans]
-            raise ExrError(f"{path}: layer '{field}' is incomplete: has {have}, missing channel(s) {missing}")
+    for field, names in chosen.items():
         arr = np.stack([chans[n] for n in names], axis=-1)
         fields[field] = _check_values(path, field, names, arr, repair, repaired)
     if "color" not in fields:
-        raise ExrError(f"{path}: missing required channel(s) R, G, B (has {sorted(chans)})")
-    spp = attrs.get("spp")
+        raise ExrError(f"{path}: missing required channel(s) R, G, B (has {sorted(chans)}){_unnamed_hint(chans)}")
+    header_spp = attrs.get("spp")
+    if header_spp is not None:
+        if not isinstance(header_spp, (int, np.integer)) or header_spp < 1:
+            raise ExrError(f"{path}: header attribute 'spp' is {header_spp!r}; expected a positive integer")
+        if spp is not None and int(spp) != int(header_spp):
+            raise ExrError(f"{path}: spp={spp} given, but the header says spp={header_spp}")
     if spp is not None:
-        if not isinstance(spp, (int, np.integer)) or spp < 1:
-            raise ExrError(f"{path}: header attribute 'spp' is {spp!r}; expected a positive integer")
-        fields["spp"] = np.float32(spp)
+        if isinstance(spp, bool) or not isinstance(spp, (int, np.integer)) or spp < 1:
+            raise JaxdenoiseError(f"spp={spp!r}; expected a positive integer (samples per pixel of {path})")
+        attrs.setdefault("spp", int(spp))
+    if attrs.get("spp") is not None:
+        fields["spp"] = np.float32(attrs["spp"])
     for field in EXR_MATRICES:
         m = _read_matrix(path, attrs, field)
         if m is not None:
             fields[field] = m
-    ignored = sorted(set(chans) - known)
+    used = {c for names in chosen.values() for c in names}
+    ignored = sorted(set(chans) - used)
     if ignored:
         attrs["ignored_channels"] = ignored
+        lookalike = [c for c in ignored if c.rpartition(".")[0].lower() in _LOOKALIKE or re.fullmatch(r"ch\d+", c)]
+        if lookalike:
+            guess = {}
+            for c in lookalike:
+                layer = c.rpartition(".")[0]
+                key = _LOOKALIKE.get(layer.lower())
+                if key is not None and LAYER_KEYS[key] not in chosen:
+                    guess.setdefault(key, layer)
+            how = (f" (here perhaps channels={guess}, CLI --channels {','.join(f'{k}={v}' for k, v in guess.items())})"
+                   if guess else "")
+            warnings.warn(f"{path}: channel(s) {lookalike} look like a buffer but were not read; to read them, "
+                          f"map them{how} with {_CHANNELS_HELP}", JaxdenoiseWarning, stacklevel=2)
+    if sources:
+        attrs["channels_from"] = {f: " ".join(v) for f, v in sources.items()}
     if repaired:
         attrs["repaired"] = repaired
         warnings.warn(f"{path}: repaired bad pixels {repaired} ({REPAIR_POLICY})", RuntimeWarning, stacklevel=2)
@@ -217,8 +373,10 @@ def read_image(path: str | os.PathLike, *, repair: str | None = None) -> np.ndar
     return buffers.color
 
 
-def read_sequence(pattern: str, *, repair: str | None = None) -> tuple[list[Buffers], list[Path]]:
-    """Read every frame matching a glob (sorted by name) into a list of `Buffers`.
+def read_sequence(pattern: str, *, repair: str | None = None, channels: Mapping[str, str] | None = None,
+                  spp: int | None = None) -> tuple[list[Buffers], list[Path]]:
+    """Read every frame matching a glob (sorted by name) into a list of `Buffers` (``channels`` and
+    ``spp`` as in `read_buffers`).
 
     All frames must have the same size and the same set of buffers (the error names the file).
     """
@@ -227,7 +385,7 @@ def read_sequence(pattern: str, *, repair: str | None = None) -> tuple[list[Buff
         raise ExrError(f"no files match '{pattern}'")
     frames: list[Buffers] = []
     for p in paths:
-        b, _ = read_buffers(p, repair=repair)
+        b, _ = read_buffers(p, repair=repair, channels=channels, spp=spp)
         if frames:
             if b.shape != frames[0].shape:
                 raise ExrError(f"{p}: size {b.shape[1]}x{b.shape[0]} differs from {paths[0]} "
@@ -241,7 +399,7 @@ def read_sequence(pattern: str, *, repair: str | None = None) -> tuple[list[Buff
 
 # Frame metadata stored as OpenEXR's standard matrix attributes. OpenEXR multiplies row vectors
 # (``p' = p M``); `Buffers` holds the column-vector matrix, the transpose (`jaxdenoise.view`).
-EXR_MATRICES: dict[str, str] = {"world_to_camera": "worldToCamera", "world_to_ndc": "worldToNDC"}
+EXR_MATRICES: dict[str, str] = MATRIX_HEADERS
 
 
 def _read_matrix(path: Path, attrs: dict, field: str) -> np.ndarray | None:
@@ -330,8 +488,13 @@ def write_buffers(path: str | os.PathLike, buffers: Buffers, attrs: Mapping[str,
 
 
 def write_image(path: str | os.PathLike, image: Any, attrs: Mapping[str, Any] | None = None) -> Path:
-    """Write an HWC image with 1 (``Y``), 3 (``R G B``) or 4 (``R G B A``) channels (atomically)."""
+    """Write an HWC image with 1 (``Y``), 3 (``R G B``) or 4 (``R G B A``) channels (atomically) as
+    linear float EXR; any other suffix is refused (8-bit display images: `write_display`)."""
     path = Path(path)
+    if path.suffix.lower() != ".exr":
+        raise ExrError(f"{path}: write_image writes linear HDR EXR (suffix .exr); got '{path.suffix}'. "
+                       f"For a display image use a {'/'.join(DISPLAY_SUFFIXES)} name (written tone-mapped "
+                       f"to sRGB by write_display)")
     image = np.asarray(image, dtype=np.float32)
     if image.ndim == 2:
         image = image[..., None]
@@ -339,3 +502,60 @@ def write_image(path: str | os.PathLike, image: Any, attrs: Mapping[str, Any] | 
         raise ExrError(f"{path}: image has shape {image.shape}; expected (H, W, 1|3|4)")
     names = {1: ["Y"], 3: ["R", "G", "B"], 4: ["R", "G", "B", "A"]}[image.shape[-1]]
     return _write(path, names, image, attrs)
+
+
+# 8-bit display formats: written tone-mapped (exposure, clip to [0, 1], the sRGB curve), never linear.
+DISPLAY_SUFFIXES = (".png", ".jpg", ".jpeg")
+
+
+def write_display(path: str | os.PathLike, image: Any, *, exposure: float = 0.0,
+                  attrs: Mapping[str, Any] | None = None) -> Path:
+    """Write an HWC RGB image as an 8-bit sRGB PNG or JPEG (atomically), for viewing: the linear
+    radiance is scaled by ``2 ** exposure`` (stops), clipped to [0, 1] and encoded with the sRGB curve
+    (`jaxdenoise.color.srgb`), then rounded. A display image is not radiance: the library never reads
+    it back as a frame (keep the EXR for that). ``attrs`` (str/int/float) go into the file's metadata
+    where the format has room for them (PNG text chunks)."""
+    from .color import srgb
+
+    path = Path(path)
+    if path.suffix.lower() not in DISPLAY_SUFFIXES:
+        raise ExrError(f"{path}: write_display writes {'/'.join(DISPLAY_SUFFIXES)}; got '{path.suffix}' "
+                       f"(linear HDR: write_image, .exr)")
+    image = np.asarray(image, dtype=np.float32)
+    if image.ndim != 3 or image.shape[-1] != 3:
+        raise ExrError(f"{path}: image has shape {image.shape}; expected (H, W, 3)")
+    if not np.isfinite(exposure):
+        raise ExrError(f"{path}: exposure={exposure}; expected a finite number of stops")
+    if not np.all(np.isfinite(image)):
+        raise ExrError(f"{path}: the image has {int((~np.isfinite(image)).sum())} NaN/Inf value(s); "
+                       f"a display image needs finite radiance")
+    scaled = np.clip(image * np.float32(2.0 ** exposure), 0.0, 1.0)
+    data = np.round(np.asarray(srgb(scaled)) * 255.0).astype(np.uint8)
+    h, w, c = data.shape
+    spec = oiio.ImageSpec(w, h, c, "uint8")
+    spec.attribute("oiio:ColorSpace", "sRGB")
+    for k, v in (attrs or {}).items():
+        _header_value(spec, k, v, path)
+    with atomic_path(path) as tmp:
+        out = oiio.ImageOutput.create(str(path))  # the format from the real suffix, not the temporary name
+        if out is None:
+            raise ExrError(f"{path}: cannot create a {path.suffix} writer ({oiio.geterror().strip()})")
+        ok = out.open(str(tmp), spec) and out.write_image(np.ascontiguousarray(data))
+        err = out.geterror()
+        out.close()
+        if not ok:
+            raise ExrError(f"{path}: writing failed ({err.strip()})")
+    return path
+
+
+def write_output(path: str | os.PathLike, image: Any, *, exposure: float = 0.0,
+                 attrs: Mapping[str, Any] | None = None) -> Path:
+    """A denoised image to ``path`` by its suffix: ``.exr`` linear (`write_image`), PNG/JPEG
+    tone-mapped sRGB (`write_display`, ``exposure`` in stops); anything else is refused by name."""
+    suffix = Path(path).suffix.lower()
+    if suffix in DISPLAY_SUFFIXES:
+        return write_display(path, image, exposure=exposure, attrs=attrs)
+    if suffix != ".exr":
+        raise ExrError(f"{path}: unknown output format '{suffix}'; expected .exr (linear HDR) or "
+                       f"{'/'.join(DISPLAY_SUFFIXES)} (tone-mapped sRGB, 8 bits)")
+    return write_image(path, image, attrs)

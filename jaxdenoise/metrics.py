@@ -1,4 +1,4 @@
-"""Image error metrics (DESIGN.md "Error against run time"; conventions in ``docs/metrics.md``).
+"""Image error metrics (docs/architecture.md "Error against run time"; conventions in ``docs/metrics.md``).
 
 All functions take a result ``x`` and a reference ``ref`` of the same shape ``(..., H, W, C)``
 (one HWC image, or any number of leading batch axes), numpy or jax arrays, and are jittable

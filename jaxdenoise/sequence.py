@@ -1,4 +1,4 @@
-"""The one sequence driver (DESIGN.md "Methods": sequences): every method over a stream of frames.
+"""The one sequence driver (docs/architecture.md "Methods": sequences): every method over a stream of frames.
 
 `run(method, params, frames)` yields the denoised frames in order, whatever the method's kind
 (`Method.temporal`, from the hooks of `jaxdenoise.methods.protocol`):

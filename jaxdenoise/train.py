@@ -1,4 +1,4 @@
-"""The generic training loop behind ``jaxdenoise train METHOD`` (DESIGN.md "Methods", "Command line").
+"""The generic training loop behind ``jaxdenoise train METHOD`` (docs/architecture.md "Methods", "Command line").
 
 ```python
 from jaxdenoise import methods, train
@@ -539,7 +539,7 @@ def selection_curve(method: Method, run: TrainConfig, state: State) -> dict:
 # -- devices and validation frames ------------------------------------------------------------------
 
 def shard_batch(batch: Any, devices: list | None = None) -> Any:
-    """Data parallelism (DESIGN.md "Methods": the trainer runs over all local devices): every batch
+    """Data parallelism (docs/architecture.md "Methods": the trainer runs over all local devices): every batch
     leaf whose leading axis divides evenly is split along it over ``devices`` (default: all local
     ones), the rest is replicated; params and optimizer state stay replicated, and XLA reduces the
     gradients across devices inside the jitted step. With one device this is a plain transfer.

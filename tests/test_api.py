@@ -48,7 +48,7 @@ def test_input_is_identity_and_gaussian_smooths():
 
 def test_prepare_feeds_only_what_method_reads():
     b = synthetic_frame()
-    # the frame's metadata (spp, the camera) always travels with it (DESIGN.md "Methods")
+    # the frame's metadata (spp, the camera) always travels with it (docs/architecture.md "Methods")
     meta = {"spp", "world_to_camera"}
     assert prepare(get("gaussian"), b).present() == {"color"} | meta
     assert prepare(get("oidn"), b).present() == {"color", "albedo", "normal"} | meta
@@ -85,7 +85,8 @@ def test_oidn_missing_package_is_clear(monkeypatch):
         return real(name, *a, **k)
 
     monkeypatch.setattr(builtins, "__import__", fake)
-    with pytest.raises(MethodError, match=r"needs the pyoidn package \(pip install -e '\.\[oidn\]'\)"):
+    with pytest.raises(MethodError, match=r"needs the pyoidn package \(pip install 'jaxdenoise\[oidn\]'; "
+                                                r"from a clone: pip install -e '\.\[oidn\]'\)"):
         jd.denoise(synthetic_frame(), method="oidn")
 
 

@@ -15,7 +15,7 @@ import pytest
 
 import data_gen
 
-pytest.importorskip("distributed", reason="the cluster extra (pip install -e '.[cluster]') is not installed")
+pytest.importorskip("distributed", reason="the cluster extra (pip install 'jaxdenoise[cluster]') is not installed")
 
 KW = dict(width=8, spp=(1, 2), instances=1, ref_spp=4, progress=False, max_depth=3)
 
@@ -100,7 +100,8 @@ def test_without_dask_the_error_names_the_extra(monkeypatch):
     monkeypatch.setattr(builtins, "__import__", fake)
     from data_gen import cluster
 
-    with pytest.raises(ImportError, match=r"install the cluster extra: pip install -e '\.\[cluster\]'"):
+    with pytest.raises(ImportError, match=r"install the cluster extra: pip install 'jaxdenoise\[cluster\]' "
+                                               r"\(from a clone: pip install -e '\.\[cluster\]'\)"):
         cluster.connect("local:1")
 
 

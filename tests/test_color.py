@@ -9,7 +9,7 @@ import pytest
 from jaxdenoise import color
 
 VALUES = np.array([-1e4, -3.0, -1.0, -1e-5, 0.0, 1e-7, 1e-3, 0.3, 1.0, 7.5, 1e4], np.float32)
-PAIRS = [color.GAMMA, color.LOG, color.MU_LAW, color.IDENTITY]
+PAIRS = [color.GAMMA, color.LOG, color.MU_LAW, color.SRGB, color.IDENTITY]
 
 
 @pytest.mark.parametrize("pair", PAIRS, ids=lambda p: p.name)
@@ -37,6 +37,11 @@ def test_closed_forms():
                                rtol=1e-6)
     np.testing.assert_allclose(np.asarray(color.mu_law(x.astype(np.float32), mu=1.0)),
                                np.log1p(x) / math.log(2), rtol=1e-6)  # mu = 1: log up to a constant
+    # sRGB (IEC 61966-2-1): linear toe below 0.0031308, 1.055 x^(1/2.4) - 0.055 above; continuous
+    s = np.array([0.0, 0.001, 0.0031308, 0.2, 1.0], np.float64)
+    want = np.where(s <= 0.0031308, 12.92 * s, 1.055 * s ** (1 / 2.4) - 0.055)
+    np.testing.assert_allclose(np.asarray(color.srgb(s.astype(np.float32))), want, rtol=1e-5, atol=1e-7)
+    assert float(color.srgb(1.0)) == pytest.approx(1.0, abs=1e-6)
     t = np.array([-1.0, 0.0, 0.5, 1.0, 3.0], np.float32)
     np.testing.assert_allclose(np.asarray(color.tonemap(t)), np.clip(t, 0, 1) ** (1 / 2.2), rtol=1e-6)
 
@@ -47,7 +52,7 @@ def test_mu_law_maps_unit_interval_to_itself():
 
 
 @pytest.mark.parametrize("fn", [color.gamma, color.inv_gamma, color.log_transform, color.inv_log_transform,
-                                color.mu_law, color.inv_mu_law, color.tonemap],
+                                color.mu_law, color.inv_mu_law, color.tonemap, color.srgb, color.inv_srgb],
                          ids=lambda f: f.__name__)
 def test_gradients_finite_at_zero_and_extremes(fn):
     # +-20 stays inside every inverse's float32 range (inv_mu_law(20) = (17^20 - 1) / 16 ~ 2.6e23)
@@ -102,6 +107,6 @@ def test_bad_input():
         color.demodulate(np.ones(3), np.ones(3), eps=0.0)
     with pytest.raises(ValueError, match="'mu' must be > 0"):
         color.mu_law(np.ones(3), mu=-1.0)
-    with pytest.raises(ValueError, match="unknown transfer 'srgb'"):
-        color.transfer("srgb")
+    with pytest.raises(ValueError, match="unknown transfer 'xyz'"):
+        color.transfer("xyz")
     assert color.transfer("mu-law") is color.MU_LAW

@@ -21,7 +21,7 @@ ALPHAS = (1e-6, 1e-4, 1e-2, 1.0, 1e2, 1e4, 1e6)
 
 
 def forward_diff(img):
-    """DESIGN.md forward differences, zero past the border (NumPy, independent of the library)."""
+    """docs/architecture.md forward differences, zero past the border (NumPy, independent of the library)."""
     dx = np.zeros_like(img)
     dy = np.zeros_like(img)
     dx[:, :-1] = img[:, 1:] - img[:, :-1]

@@ -1,4 +1,4 @@
-"""Pure image filters (DESIGN.md "Layout": filters/), after Kalantari, Bako & Sen 2015.
+"""Pure image filters (docs/architecture.md "Layout": filters/), after Kalantari, Bako & Sen 2015.
 
 All filters take and return ``(H, W, C)`` float arrays, accept scalar or per-pixel ``(H, W)``
 parameters, are differentiable in every continuous parameter, keep static sizes (``radius``,

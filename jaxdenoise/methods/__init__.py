@@ -1,4 +1,4 @@
-"""The method registry (DESIGN.md "Methods").
+"""The method registry (docs/architecture.md "Methods").
 
 Every method lives in ``jaxdenoise/methods/<module>.py`` and exposes the surface stated once in
 `jaxdenoise.methods.protocol` (required: ``Config``, ``needs``, ``init``, ``apply``; optional hook

@@ -2,7 +2,7 @@
 
 Not JAX (``JITTABLE = False``): it runs OIDN's pretrained "RT" filter on the CPU with ``hdr=True``,
 passing albedo and normal when the frame has them (OIDN needs albedo to use normals). Install with
-``pip install -e .[oidn]``.
+``pip install 'jaxdenoise[oidn]'`` (from a clone: ``pip install -e '.[oidn]'``).
 """
 from __future__ import annotations
 
@@ -28,7 +28,8 @@ def requirements() -> str | None:
     try:
         import pyoidn  # noqa: F401
     except ImportError as e:
-        return f"method 'oidn' needs the pyoidn package (pip install -e '.[oidn]'): {e}"
+        return (f"method 'oidn' needs the pyoidn package (pip install 'jaxdenoise[oidn]'; from a clone: "
+                f"pip install -e '.[oidn]'): {e}")
     return None
 
 

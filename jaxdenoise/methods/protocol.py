@@ -1,4 +1,4 @@
-"""The method surface (DESIGN.md "Methods"), stated once as typed protocols.
+"""The method surface (docs/architecture.md "Methods"), stated once as typed protocols.
 
 A method is a module ``jaxdenoise/methods/<name>.py``. Every module satisfies `MethodModule`; the
 optional hooks come in groups, each a protocol of its own, and a module has either all of a group's

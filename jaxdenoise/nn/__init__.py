@@ -1,4 +1,4 @@
-"""Stax-style layers over plain-pytree parameters (DESIGN.md "Layers").
+"""Stax-style layers over plain-pytree parameters (docs/architecture.md "Methods").
 
 Every constructor returns a pair ``(init, apply)``:
 

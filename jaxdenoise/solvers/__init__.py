@@ -1,4 +1,4 @@
-"""Screened-Poisson solvers and pure optimizers (DESIGN.md "Layout": solvers/).
+"""Screened-Poisson solvers and pure optimizers (docs/architecture.md "Layout": solvers/).
 
 This package is the only place in jaxdenoise that imports jaxopt.
 """

@@ -1,6 +1,6 @@
 """Orthonormal 2-D DCT-II in pure JAX, and the DCT-diagonal solve the L2 Poisson solver needs.
 
-The screened-Poisson operator ``alpha I + D^T D`` with the forward differences of DESIGN.md and a
+The screened-Poisson operator ``alpha I + D^T D`` with the forward differences of docs/architecture.md and a
 Neumann boundary (the last column of ``dx`` / last row of ``dy`` ignored) is diagonal in the DCT-II
 basis (see `laplacian_eigenvalues`), which makes the L2 solve exact and O(N log N):
 ``x = idct2(m * dct2(r))`` with ``m = 1 / (lambda + alpha)``. `dct_apply` computes exactly that.

@@ -2,7 +2,7 @@
 
     I* = argmin_I  ||D I - g||_p + alpha ||I - I_b||_p ,   p in {1, 2},  per colour channel,
 
-with ``D = (D_x, D_y)`` the forward differences of DESIGN.md,
+with ``D = (D_x, D_y)`` the forward differences of docs/architecture.md,
 ``(D_x I)[y, x] = I[y, x+1] - I[y, x]`` and ``(D_y I)[y, x] = I[y+1, x] - I[y, x]``, ``g = (dx, dy)``
 the rendered gradients and ``I_b`` the rendered base (primal) image. Conventions (see
 ``docs/methods/poisson.md``):

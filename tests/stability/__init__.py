@@ -1,1 +1,1 @@
-"""The numerical-stability suite (DESIGN.md "Numerical stability"); see ``cases.py``."""
+"""The numerical-stability suite (docs/architecture.md "Numerical stability"); see ``cases.py``."""

@@ -1,4 +1,4 @@
-"""The catalogue of stiff and extreme inputs, and the checks run on it (DESIGN.md "Numerical stability").
+"""The catalogue of stiff and extreme inputs, and the checks run on it (docs/architecture.md "Numerical stability").
 
 One catalogue serves three consumers: ``test_methods.py`` (every registered method, through
 `jaxdenoise.methods.get`), ``test_filters.py`` (the public filters of `jaxdenoise.filters` and the
@@ -50,7 +50,7 @@ FIREFLY = 1e6
 
 # == frames ======================================================================================
 def _forward_diff(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """DESIGN.md gradients: dx = I[y, x+1] - I[y, x], dy = I[y+1, x] - I[y, x]; 0 past the border."""
+    """docs/architecture.md gradients: dx = I[y, x+1] - I[y, x], dy = I[y+1, x] - I[y, x]; 0 past the border."""
     dx = np.zeros_like(img)
     dy = np.zeros_like(img)
     dx[:, :-1] = img[:, 1:] - img[:, :-1]

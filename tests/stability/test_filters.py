@@ -1,4 +1,4 @@
-"""Public filters and screened-Poisson solvers on the stiff cases (DESIGN.md "Numerical stability").
+"""Public filters and screened-Poisson solvers on the stiff cases (docs/architecture.md "Numerical stability").
 
 Filters: every name in ``jaxdenoise.filters.__all__`` (minus helpers) must have an entry in
 ``cases.FILTERS`` (how to call it), so a filter added later fails `test_every_public_filter_is_covered`

@@ -1,4 +1,4 @@
-"""Every registered method on every stiff case (DESIGN.md "Numerical stability").
+"""Every registered method on every stiff case (docs/architecture.md "Numerical stability").
 
 Parametrized over `jaxdenoise.methods.names()` at collection time, so a method registered later is
 covered without editing this file. The pass rule and the NaN/Inf policy are in ``cases.py``:
