@@ -118,7 +118,7 @@ def time_method(m: Method, params: Any, buffers: Buffers, *, runs: int = MIN_RUN
     buffers = prepare(m, buffers, where=where)
     buffers = jax.device_put(buffers) if m.jittable else buffers
     fn: Callable = inference_fn(m)
-    compile_s, xla_bytes = fn.compile(params, buffers) if m.jittable else (0.0, None)
+    info = fn.compile(params, buffers) if m.jittable else None
     times = []
     # The resident-set window opens before the warm-up: foreign code allocates its buffers there.
     with _RssPeak() as rss:
@@ -129,8 +129,18 @@ def time_method(m: Method, params: Any, buffers: Buffers, *, runs: int = MIN_RUN
             times.append(time.perf_counter() - t0)
     image, clamped = nonnegative(out)  # what the user gets (inference.OUTPUT_POLICY); not timed
     return {"image": image, "negative_clamped": clamped, "seconds": statistics.median(times),
-            "seconds_all": times, "compile_seconds": compile_s, "rss_peak_bytes": int(rss.bytes),
-            "xla_bytes": None if xla_bytes is None else int(xla_bytes)}
+            "seconds_all": times, **_compile_fields(info), "rss_peak_bytes": int(rss.bytes),
+            "xla_bytes": None if info is None or info.xla_bytes is None else int(info.xla_bytes)}
+
+
+def _compile_fields(info) -> dict[str, Any]:
+    """A record's compile columns from an `inference.CompileInfo` (``None``: foreign code, nothing
+    compiled): XLA's compile (``compile_seconds``, near 0 on a persistent-cache hit), tracing and
+    lowering apart, and where the program came from (``compile_cache``: hit, miss, memory, off)."""
+    if info is None:
+        return {"compile_seconds": 0.0, "trace_seconds": None, "lower_seconds": None, "compile_cache": None}
+    return {"compile_seconds": info.compile_seconds, "trace_seconds": info.trace_seconds,
+            "lower_seconds": info.lower_seconds, "compile_cache": info.cache}
 
 
 def time_sequence(m: Method, params: Any, frames: list[Buffers], *, runs: int = MIN_RUNS,
@@ -255,7 +265,8 @@ def run(data_dir: str | os.PathLike, methods: Iterable[str], out_dir: str | os.P
               "weights": {k: _relative(v, out_dir) for k, v in (weights or {}).items()}, "shots": len(shots),
               "sequences": len(seqs), "renders": sum(len(s.renders) for s in shots),
               "method_configs": {n: dataclasses.asdict(m.config) for n, (m, _) in resolved.items()},
-              "jax": jax.__version__, "device": str(jax.devices()[0]), "cpu_count": os.cpu_count()}
+              "jax": jax.__version__, "device": str(jax.devices()[0]), "cpu_count": os.cpu_count(),
+              "compile_cache": _cache_status()}
     records: list[dict] = []
     temporal: list[dict] = []
     store = ImageStore()  # every image shown by viewer.html (float16, base64)
@@ -360,6 +371,7 @@ def _record(shot: Shot, render: Render, method: str, r: dict, image: np.ndarray,
            "render_seconds": charged_render_seconds(render, read), "frame_render_seconds": render.render_seconds,
            "method": method, "seconds": r["seconds"],
            "seconds_all": r["seconds_all"], "compile_seconds": r["compile_seconds"],
+           **{k: r[k] for k in ("trace_seconds", "lower_seconds", "compile_cache") if k in r},
            "rss_peak_bytes": r["rss_peak_bytes"], "xla_bytes": r["xla_bytes"],
            "height": int(ref.shape[0]), "width": int(ref.shape[1]), "buffers": read,
            "input_relmse": float(metrics.relmse(np.asarray(buffers.color, np.float32), ref)), **extra}
@@ -397,6 +409,7 @@ def summarize(records: list[dict]) -> list[dict]:
             "psnr": float(np.mean([r["psnr"] for r in rs])),
             "seconds": float(np.median(timed(rs, "seconds"))) if timed(rs, "seconds") else None,
             "compile_seconds": float(max(timed(rs, "compile_seconds"))) if timed(rs, "compile_seconds") else None,
+            "compile_cache": "+".join(sorted({r["compile_cache"] for r in rs if r.get("compile_cache")})) or None,
             "rss_peak_mb": rss_peak[method] / 2**20 if method in rss_peak else None,
             "xla_mb": max(xla) / 2**20 if xla else None,
             "render_seconds": float(np.median(render)) if all(x is not None for x in render) else None,
@@ -418,6 +431,12 @@ def _row_notes(rs: list[dict]) -> list[str]:
     return [f"{n} ({k} of {len(rs)} frame(s))" for n, k in counts.items()]
 
 
+def _cache_mark(cache: str | None) -> str:
+    """The compile column's mark of a program loaded from the persistent cache (rows of reports
+    written before the cache was recorded carry none)."""
+    return {"hit": " (cached)", "hit+memory": " (cached)"}.get(cache or "", " (partly cached)" if cache and "hit" in cache else "")
+
+
 def markdown_table(rows: list[dict]) -> str:
     lines = ["| method | spp | frames | RelMSE | input RelMSE | vs input | SSIM | PSNR (dB) | time (ms, median) "
              "| compile (s) | RSS peak MB | XLA MB | notes |",
@@ -429,7 +448,7 @@ def markdown_table(rows: list[dict]) -> str:
         lines.append(f"| {r['method']} | {r['spp'] if r['spp'] is not None else '?'} | {r['frames']} | "
                      f"{r['relmse']:.4g} | {r['input_relmse']:.4g} | {vs} | "
                      f"{r['ssim']:.4f} | {r['psnr']:.2f} | {fmt(r['seconds'], '.2f', 1e3)} | "
-                     f"{fmt(r['compile_seconds'], '.2f')} | {fmt(r['rss_peak_mb'], '.1f')} | {fmt(r.get('xla_mb'), '.1f')} | "
+                     f"{fmt(r['compile_seconds'], '.2f')}{_cache_mark(r.get('compile_cache'))} | {fmt(r['rss_peak_mb'], '.1f')} | {fmt(r.get('xla_mb'), '.1f')} | "
                      f"{'; '.join(r.get('notes', []))} |")
     return "\n".join(lines)
 
@@ -581,4 +600,22 @@ def one_line(report: dict) -> str:
             f"lowest RelMSE {best['relmse']:.4g} by {best['method']} at {best['spp']} spp"
             + (f"; scored on Dask {report['config']['scheduler']} ({report['config']['dask_workers']} worker(s)), "
                f"timed {report['config']['timing']}" if report["config"].get("scheduler") else "")
+            + _cache_line(report["records"])
             + (f"; {len(report['skipped'])} skipped" if report["skipped"] else ""))
+
+
+def _cache_status() -> dict:
+    from . import compile_cache
+
+    compile_cache.enable()
+    return compile_cache.status()
+
+
+def _cache_line(records: list[dict]) -> str:
+    """``; compile cache: H of N programs loaded (DIR)`` where the records say (see `compile_cache`)."""
+    seen = [r["compile_cache"] for r in records if r.get("compile_cache") in ("hit", "miss")]
+    if not seen:
+        return ""
+    from .compile_cache import status
+
+    return f"; compile cache: {seen.count('hit')} of {len(seen)} program(s) loaded from {status()['dir']}"

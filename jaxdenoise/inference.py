@@ -5,6 +5,7 @@ function, compiled once per input signature with XLA's memory estimate checked f
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 import os
 from typing import Any, Callable
@@ -15,7 +16,7 @@ import numpy as np
 from .buffers import Buffers, BuffersError
 from .methods import Method, MethodError
 
-__all__ = ["Compiled", "OUTPUT_POLICY", "available_memory", "check_finite", "inference_fn", "prepare",
+__all__ = ["CompileInfo", "Compiled", "OUTPUT_POLICY", "available_memory", "check_finite", "inference_fn", "prepare",
            "buffers_read", "missing_optional", "nonnegative", "clamp_note", "notes", "regime"]
 
 OUTPUT_POLICY = (
@@ -69,15 +70,38 @@ def available_memory() -> int:
     return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
 
 
+@dataclasses.dataclass(frozen=True)
+class CompileInfo:
+    """What compiling one input signature cost (`Compiled.compile`): JAX's tracing (Python), the
+    lowering to StableHLO, XLA's compile (near 0 when the program came from the persistent cache),
+    where the executable came from (``"memory"``: compiled before in this process; ``"hit"`` /
+    ``"miss"``: the persistent cache, `jaxdenoise.compile_cache`; ``"off"``: no persistent cache),
+    and XLA's memory estimate (arguments + outputs + temporaries, bytes)."""
+
+    trace_seconds: float
+    lower_seconds: float
+    compile_seconds: float
+    cache: str
+    xla_bytes: int | None
+
+    @property
+    def seconds(self) -> float:
+        return self.trace_seconds + self.lower_seconds + self.compile_seconds
+
+
 class Compiled:
     """A method's jitted inference, compiled ahead of time once per input signature (tree structure,
     shapes, dtypes) so that XLA's memory estimate is known **before** the program runs: a frame whose
     program needs more than the available memory (arguments + outputs + temporaries, from
     ``compiled.memory_analysis()``) is refused with that estimate (a `MethodError`) instead of being
-    killed by the operating system. ``compile(params, buffers)`` returns ``(compile seconds, XLA
-    bytes)`` (0 seconds when the signature was compiled before)."""
+    killed by the operating system. ``compile(params, buffers)`` returns a `CompileInfo` (all zeros,
+    ``cache="memory"``, when the signature was compiled before); programs are kept in JAX's
+    persistent cache across processes (`jaxdenoise.compile_cache`)."""
 
     def __init__(self, m: Method) -> None:
+        from . import compile_cache
+
+        compile_cache.enable()
         self.name = m.name
         self._jit = jax.jit(lambda params, buffers: m.module.apply(params, buffers, m.config))
         self._cache: dict = {}
@@ -87,15 +111,23 @@ class Compiled:
         leaves, tree = jax.tree_util.tree_flatten((params, buffers))
         return tree, tuple((np.shape(x), np.dtype(getattr(x, "dtype", type(x))).str) for x in leaves)
 
-    def compile(self, params: Any, buffers: Any) -> tuple[float, int | None]:
+    def compile(self, params: Any, buffers: Any) -> CompileInfo:
         key = self._key(params, buffers)
         if key in self._cache:
-            return 0.0, self._cache[key][1]
+            return CompileInfo(0.0, 0.0, 0.0, "memory", self._cache[key][1])
         import time
 
+        from .compile_cache import CacheCounter, status
+
         t0 = time.perf_counter()
-        exe = self._jit.lower(params, buffers).compile()
-        seconds = time.perf_counter() - t0
+        traced = self._jit.trace(params, buffers)
+        t1 = time.perf_counter()
+        lowered = traced.lower()
+        t2 = time.perf_counter()
+        with CacheCounter() as counter:
+            exe = lowered.compile()
+        t3 = time.perf_counter()
+        cache = "off" if not status()["enabled"] else ("hit" if counter.hits and not counter.misses else "miss")
         ma = exe.memory_analysis()
         need = (ma.argument_size_in_bytes + ma.output_size_in_bytes + ma.temp_size_in_bytes) if ma else None
         free = available_memory()
@@ -105,7 +137,7 @@ class Compiled:
                               f"estimate (arguments + outputs + temporaries), more than the {free / 2**30:.1f} GiB "
                               f"available; denoise a smaller frame or crop, or free memory")
         self._cache[key] = (exe, need)
-        return seconds, need
+        return CompileInfo(t1 - t0, t2 - t1, t3 - t2, cache, need)
 
     def __call__(self, params: Any, buffers: Any) -> Any:
         key = self._key(params, buffers)

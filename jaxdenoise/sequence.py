@@ -27,6 +27,7 @@ from typing import Any, Callable, Iterable, Iterator, Sequence
 import jax
 import numpy as np
 
+from . import compile_cache
 from .inference import inference_fn, prepare
 from .buffers import Buffers, BuffersError
 from .methods import Method
@@ -36,16 +37,19 @@ __all__ = ["run", "run_all"]
 
 @functools.lru_cache(maxsize=32)
 def _jitted_step(module, config) -> Callable:
+    compile_cache.enable()
     return jax.jit(lambda params, state, buffers: module.step(params, state, buffers, config))
 
 
 @functools.lru_cache(maxsize=32)
 def _jitted_prepare_frame(module, config) -> Callable:
+    compile_cache.enable()
     return jax.jit(lambda params, buffers: module.prepare_frame(params, buffers, config))
 
 
 @functools.lru_cache(maxsize=32)
 def _jitted_window(module, config) -> Callable:
+    compile_cache.enable()
     return jax.jit(lambda params, prepared, center: module.apply_window(params, prepared, center, config),
                    static_argnums=2)
 

@@ -97,7 +97,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import checkpoint
+from . import checkpoint, compile_cache
 from .fsutil import write_json
 from .methods import Method, MethodError
 from .nn.state import merge_updates
@@ -708,6 +708,7 @@ def train(method: Method, data: str | os.PathLike | TrainingData, out_dir: str |
     run = TrainConfig.for_method(method) if run is None else run
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    compile_cache.enable()  # a resumed run compiles its steps from the persistent cache
     source = data.source if isinstance(data, TrainingData) else Path(data)
     write_json(out_dir / "train_config.json",
                {"method": method.name, "config": checkpoint.config_to_dict(method.config),

@@ -6,6 +6,13 @@ import os
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
+# JAX's persistent compilation cache (jaxdenoise.compile_cache): one fresh folder per test run,
+# shared by the run's xdist workers (the same programs compile once for all of them) and removed at
+# its end, so no run reads programs an earlier run (or the user's ~/.cache) compiled.
+_RUN = os.environ.get("PYTEST_XDIST_TESTRUNUID") or f"pid{os.getpid()}"
+_CACHE = os.path.join(__import__("tempfile").gettempdir(), f"jaxdenoise-test-xla-{_RUN}")
+os.environ["JAXDENOISE_CACHE_DIR"] = _CACHE
+
 import numpy as np
 import pytest
 
@@ -73,3 +80,11 @@ def registered(name: str, module: str):
         yield
     finally:
         _REGISTRY.pop(name, None)
+
+
+def pytest_sessionfinish(session, exitstatus):
+    """The controller (not an xdist worker) removes the run's compilation cache."""
+    if not hasattr(session.config, "workerinput"):
+        import shutil
+
+        shutil.rmtree(_CACHE, ignore_errors=True)

@@ -26,6 +26,8 @@ _REGISTRY: dict[str, tuple[str, dict[str, Any]]] = {
     "input": ("jaxdenoise.methods.input", {}),
     "gaussian": ("jaxdenoise.methods.gaussian", {}),
     "oidn": ("jaxdenoise.methods.oidn", {}),
+    "oidn-balanced": ("jaxdenoise.methods.oidn", {"quality": "balanced"}),  # OIDN's own speed presets:
+    "oidn-fast": ("jaxdenoise.methods.oidn", {"quality": "fast"}),          # its error-against-time curve
     "lbf": ("jaxdenoise.methods.lbf", {"filter": "bilateral"}),
     "lbf-nlm": ("jaxdenoise.methods.lbf", {"filter": "nlm"}),
     "bilateral": ("jaxdenoise.methods.bilateral", {"filter": "bilateral"}),
