@@ -164,9 +164,7 @@ def time_sequence(m: Method, params: Any, frames: list[Buffers], *, runs: int = 
             out = run_all(m, params, frames, names=names)
             times.append(time.perf_counter() - t0)
     med = statistics.median(times)
-    finished = [nonnegative(x) for x in out]  # inference.OUTPUT_POLICY, per frame; not timed
-    return {"images": np.stack([x[0] for x in finished]), "negative_clamped": [x[1] for x in finished],
-            "seconds": med / t_len, "seconds_all": [t / t_len for t in times],
+    return {**_finished_frames(out), "seconds": med / t_len, "seconds_all": [t / t_len for t in times],
             "compile_seconds": max(0.0, warm - med), "rss_peak_bytes": int(rss.bytes), "xla_bytes": None}
 
 
@@ -327,7 +325,8 @@ def run(data_dir: str | os.PathLike, methods: Iterable[str], out_dir: str | os.P
                                     "reason": f"sequence frame lacks buffer(s) {lacking[first]}"})
                     bar.update(1)
                     continue
-                r = time_sequence(m, params, frames, runs=runs, names=[str(x.path) for x in renders])
+                r = time_sequence(m, params, frames, runs=runs, names=[str(x.path) for x in renders]) if timing \
+                    else _untimed_sequence(m, params, frames, [str(x.path) for x in renders])
                 recs = [_record(s, x, name, r, img, ref, data_dir, b, buffers_read(m, b),
                                 sequence=_relative(seq.folder, data_dir), frame=s.frame, negative_clamped=c,
                                 notes=notes(m, b, sequence=True) + ([CLAMP_NOTE] if c else []))
@@ -363,6 +362,19 @@ def _untimed(m: Method, params: Any, buffers: Buffers, where: str, scored: dict 
         clamped = scored.get("negative_clamped")
     return {"image": image, "negative_clamped": clamped, "seconds": None, "seconds_all": [], "compile_seconds": None, "rss_peak_bytes": None,
             "xla_bytes": None}
+
+
+def _finished_frames(images) -> dict:
+    """A sequence's frames under the output policy (`inference.OUTPUT_POLICY`), each frame's count."""
+    finished = [nonnegative(x) for x in images]
+    return {"images": np.stack([x[0] for x in finished]), "negative_clamped": [x[1] for x in finished]}
+
+
+def _untimed_sequence(m: Method, params: Any, frames: list[Buffers], names: list[str]) -> dict:
+    """`time_sequence`'s fields for an untimed run (``timing=False``): one pass, no seconds, no memory."""
+    from .sequence import run_all
+
+    return {**_finished_frames(run_all(m, params, frames, names=names)), "seconds": None, "seconds_all": [], "compile_seconds": None, "rss_peak_bytes": None, "xla_bytes": None}
 
 
 def _record(shot: Shot, render: Render, method: str, r: dict, image: np.ndarray, ref: np.ndarray, data_dir: Path,
@@ -461,7 +473,7 @@ def temporal_table(temporal: list[dict]) -> str:
         te = f"{t['temporal_error']:.4g}" if t["temporal_error"] is not None else "-"
         lines.append(f"| {t['sequence']} | {t['render']} | {t['spp']} | {t['method']} | {t['kind']} | "
                      f"{t['frames']} | {te} | {t['relmse']:.4g} | {t['ssim']:.4f} | "
-                     f"{1e3 * t['seconds_per_frame']:.1f} |")
+                     f"{'-' if t['seconds_per_frame'] is None else format(1e3 * t['seconds_per_frame'], '.1f')} |")
     return "\n".join(lines)
 
 

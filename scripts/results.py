@@ -622,6 +622,49 @@ bind("baseline-library-eval", baseline, "bench_library_eval/results.json")
 bind("baseline-heldout", baseline, "bench_heldout_all/results.json")
 
 
+def baseline_sequences(results: Path, rel: str) -> str:
+    """Per method and rate of a bench report's fly-throughs: RelMSE (SSIM) mean over every frame of
+    every sequence, and the temporal error (`jaxdenoise.metrics.temporal_error`) mean over the
+    sequences; the lowest RelMSE and temporal error of each rate in bold."""
+    d = load(results, rel)
+    temporal, skipped = d["temporal"], d["skipped"]
+    if not temporal:
+        raise PageError(f"{rel}: no sequence records (a folder of frame_XXXX shots is benchmarked as one)")
+    spps = sorted({t["spp"] for t in temporal})
+    methods = [m for m in BASELINE_METHODS if any(t["method"] == m for t in temporal)]
+    mean = lambda xs: sum(xs) / len(xs)
+    cells: dict[tuple, tuple] = {}
+    for m in methods:
+        for sp in spps:
+            ts = [t for t in temporal if t["method"] == m and t["spp"] == sp]
+            if not ts:
+                if not any(k["method"] == m for k in skipped):
+                    raise PageError(f"{rel}: no {m} sequences at {sp} spp and no skipped entry saying why")
+                continue
+            cells[m, sp] = (mean([t["relmse"] for t in ts]), mean([t["ssim"] for t in ts]),
+                            mean([t["temporal_error"] for t in ts]), len(ts), ts[0]["frames"])
+    best = {sp: (min(v[0] for (m, s), v in cells.items() if s == sp),
+                 min(v[2] for (m, s), v in cells.items() if s == sp)) for sp in spps}
+    rows = []
+    for m in methods:
+        row = [m]
+        for sp in spps:
+            c = cells.get((m, sp))
+            if c is None:
+                row += ["-", "-"]
+                continue
+            a, b = f"{num(c[0])} ({num(c[1], '.3f')})", num(c[2])
+            row += [f"**{a}**" if c[0] == best[sp][0] else a, f"**{b}**" if c[2] == best[sp][1] else b]
+        rows.append(row)
+    header = ["method"] + [h for sp in spps for h in (f"{sp} spp RelMSE (SSIM)", f"{sp} spp temporal")]
+    counts = sorted({(v[3], v[4]) for v in cells.values()})
+    return table(header, rows) + "\n\nMeans over " + ", ".join(f"{n} sequences of {f} frames" for n, f in counts) + \
+        " per cell; temporal error: `jaxdenoise.metrics.temporal_error` (docs/metrics.md)."
+
+
+bind("baseline-library-eval-seq", baseline_sequences, "bench_library_eval_seq/results.json")
+
+
 # demo ---------------------------------------------------------------------------------------------
 
 @renderer("demo-time")

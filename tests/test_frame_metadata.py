@@ -229,6 +229,13 @@ def test_bench_runs_sequences_through_the_driver(weights, tmp_path):
     want = float(metrics.temporal_error(out, np.stack(refs)))
     assert t["lbf"]["temporal_error"] == pytest.approx(want, rel=1e-4)
     assert "## Sequences" in (tmp_path / "r" / "results.md").read_text()
+    # --no-timing: the same scores from one untimed pass, no time columns, the report still written
+    quiet = bench.run(tmp_path / "data", ["input", "lbf"], tmp_path / "q", weights={"lbf": str(folder)},
+                      progress=False, timing=False)
+    tq = {x["method"]: x for x in quiet["temporal"]}
+    assert tq["lbf"]["temporal_error"] == pytest.approx(want, rel=1e-4) and tq["lbf"]["seconds_per_frame"] is None
+    assert all(r["seconds"] is None and r["seconds_all"] == [] for r in quiet["records"])
+    assert "## Sequences" in (tmp_path / "q" / "results.md").read_text()
 
 
 def test_driver_refuses_stacked_frames_and_empty_sequences(weights):
