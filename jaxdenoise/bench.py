@@ -612,22 +612,27 @@ def one_line(report: dict) -> str:
             f"lowest RelMSE {best['relmse']:.4g} by {best['method']} at {best['spp']} spp"
             + (f"; scored on Dask {report['config']['scheduler']} ({report['config']['dask_workers']} worker(s)), "
                f"timed {report['config']['timing']}" if report["config"].get("scheduler") else "")
-            + _cache_line(report["records"])
+            + _cache_line(report)
             + (f"; {len(report['skipped'])} skipped" if report["skipped"] else ""))
 
 
 def _cache_status() -> dict:
+    """The compile cache's state for the report's config, its folder under the home written ``~/...``
+    (reports never carry this machine's absolute paths)."""
     from . import compile_cache
 
     compile_cache.enable()
-    return compile_cache.status()
+    status = compile_cache.status()
+    if status["dir"]:
+        home = os.path.expanduser("~")
+        status["dir"] = "~" + status["dir"][len(home):] if status["dir"].startswith(home + os.sep) else status["dir"]
+    return status
 
 
-def _cache_line(records: list[dict]) -> str:
-    """``; compile cache: H of N programs loaded (DIR)`` where the records say (see `compile_cache`)."""
-    seen = [r["compile_cache"] for r in records if r.get("compile_cache") in ("hit", "miss")]
+def _cache_line(report: dict) -> str:
+    """``; compile cache: H of N programs loaded from DIR`` where the records say (`compile_cache`)."""
+    seen = [r["compile_cache"] for r in report["records"] if r.get("compile_cache") in ("hit", "miss")]
     if not seen:
         return ""
-    from .compile_cache import status
-
-    return f"; compile cache: {seen.count('hit')} of {len(seen)} program(s) loaded from {status()['dir']}"
+    where = (report["config"].get("compile_cache") or {}).get("dir")
+    return f"; compile cache: {seen.count('hit')} of {len(seen)} program(s) loaded from {where}"
