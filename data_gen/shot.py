@@ -171,7 +171,6 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
     and the resume keys (default: the XML path as given, a dict's ``__name__``, ``library:<name>@<digest>``
     for a library scene, ``mitsuba.Scene`` for a loaded scene).
     """
-    from .gradient import DEFAULT_SHIFT, PRIMALS, SHIFTS
     from jaxdenoise.buffers import Buffers
     from jaxdenoise.fsutil import remove_stale_temporaries, write_json
     from jaxdenoise.io import write_buffers
@@ -185,11 +184,7 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
         raise JaxdenoiseError(f"instances must be an int >= 1, got {instances!r}")
     if ref_spp and ref_spp < 2:
         raise JaxdenoiseError(f"ref_spp must be 0 (no reference) or >= 2, got {ref_spp}")
-    shift = DEFAULT_SHIFT if shift is None else shift
-    if shift not in SHIFTS:
-        raise JaxdenoiseError(f"shift: expected one of {SHIFTS}, got {shift!r}")
-    if primal not in PRIMALS or (primal == "gpt" and shift != "reconnect"):
-        raise JaxdenoiseError(f"primal: expected 'base', or 'gpt' with shift='reconnect'; got {primal!r} (shift {shift!r})")
+    shift = _check_shift(shift, primal)
     settings = PathSettings(max_depth=int(max_depth), rr_depth=int(rr_depth))
     label = _scene_label(scene) if label is None else str(label)
     loaded = load_scene(scene, width=width, height=height)
@@ -252,19 +247,8 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
                                             "the full reference's own RelMSE is about a quarter of it"}
             else:
                 fseed = derive_seed(seed, "noisy", s, inst)
-                record_feats = [f for f in FEATURES if f in fields or f"{f}_var" in fields]
-                with RenderTimer() as timer:
-                    data = render_buffers(loaded, spp=s, seed=fseed, settings=settings, record=record_feats,
-                                          samples_per_pass=samples_per_pass, on_pass=tick)
-                seconds, compile_seconds = timer.seconds, timer.compile_seconds
-                grad_seconds, stats = 0.0, None
-                if any(f in fields for f in GRADIENT_FIELDS):
-                    with RenderTimer() as timer:
-                        grads, stats = _gradients(loaded, s, fseed, settings, samples_per_pass, shift, primal)
-                        data.update(grads)
-                    grad_seconds = timer.seconds
-                    seconds += grad_seconds
-                    compile_seconds += timer.compile_seconds
+                data, seconds, compile_seconds, grad_seconds, stats = _noisy_frame(
+                    loaded, s, fseed, settings, fields, samples_per_pass, shift, primal, tick)
                 bufs = Buffers(**{f: data[f] for f in fields if f in data}, spp=s, **camera)
                 attrs = _attrs(base_key, s, inst, seconds)
                 if grad_seconds:
@@ -296,6 +280,62 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
     rec["render_seconds"] = float(sum(v.get("seconds", 0.0) for v in rec["files"].values()))
     write_json(out_dir / SHOT_RECORD, rec)
     return rec
+
+
+def render_frame(scene: Any, *, spp: int = 4, methods: Iterable[str] | None = None,
+                 buffers: Iterable[str] | None = None, seed: int = 0, instance: int = 0, max_depth: int = 8,
+                 rr_depth: int = 5, width: int | None = None, height: int | None = None, shift: str | None = None,
+                 primal: str = "base", samples_per_pass: int = DEFAULT_SAMPLES_PER_PASS):
+    """One noisy frame rendered into memory as `jaxdenoise.Buffers`, no file written: the frame
+    `render_shot` (same arguments) writes to ``spp{spp:04d}_{instance:02d}.exr``, the same samples
+    (its seed is derived the same way) and the same buffers (``methods``' ``needs()``, or ``buffers``,
+    or everything the scene varies), with ``spp`` and the camera matrices as the file's header has
+    them; pass it straight to `jaxdenoise.denoise`. ``scene``: an XML path, a scene dict, a loaded
+    ``mi.Scene`` or ``library:<name>``; ``width``/``height`` resize its film."""
+    from jaxdenoise.buffers import Buffers
+
+    if isinstance(spp, bool) or not isinstance(spp, (int, np.integer)) or spp < 1:
+        raise JaxdenoiseError(f"spp must be an int >= 1, got {spp!r}")
+    if isinstance(instance, bool) or not isinstance(instance, (int, np.integer)) or instance < 0:
+        raise JaxdenoiseError(f"instance must be an int >= 0, got {instance!r}")
+    shift = _check_shift(shift, primal)
+    settings = PathSettings(max_depth=int(max_depth), rr_depth=int(rr_depth))
+    loaded = load_scene(scene, width=width, height=height)
+    camera = {k: v for k, v in camera_matrices(loaded).items() if v is not None}
+    fields, _ = plan_buffers(describe(loaded), settings, requested_fields(methods, buffers), int(spp))
+    data = _noisy_frame(loaded, int(spp), derive_seed(seed, "noisy", int(spp), int(instance)), settings, fields,
+                        samples_per_pass, shift, primal, None)[0]
+    return Buffers(**{f: data[f] for f in fields if f in data}, spp=int(spp), **camera)
+
+
+def _check_shift(shift: str | None, primal: str) -> str:
+    """The gradient shift to use (the default for None), with ``primal`` checked against it."""
+    from .gradient import DEFAULT_SHIFT, PRIMALS, SHIFTS
+
+    shift = DEFAULT_SHIFT if shift is None else shift
+    if shift not in SHIFTS:
+        raise JaxdenoiseError(f"shift: expected one of {SHIFTS}, got {shift!r}")
+    if primal not in PRIMALS or (primal == "gpt" and shift != "reconnect"):
+        raise JaxdenoiseError(f"primal: expected 'base', or 'gpt' with shift='reconnect'; got {primal!r} (shift {shift!r})")
+    return shift
+
+
+def _noisy_frame(loaded, spp, fseed, settings, fields, samples_per_pass, shift, primal, tick):
+    """(buffers dict, seconds, compile seconds, gradient seconds, shift statistics) of one noisy frame."""
+    record_feats = [f for f in FEATURES if f in fields or f"{f}_var" in fields]
+    with RenderTimer() as timer:
+        data = render_buffers(loaded, spp=spp, seed=fseed, settings=settings, record=record_feats,
+                              samples_per_pass=samples_per_pass, on_pass=tick)
+    seconds, compile_seconds = timer.seconds, timer.compile_seconds
+    grad_seconds, stats = 0.0, None
+    if any(f in fields for f in GRADIENT_FIELDS):
+        with RenderTimer() as timer:
+            grads, stats = _gradients(loaded, spp, fseed, settings, samples_per_pass, shift, primal)
+            data.update(grads)
+        grad_seconds = timer.seconds
+        seconds += grad_seconds
+        compile_seconds += timer.compile_seconds
+    return data, seconds, compile_seconds, grad_seconds, stats
 
 
 def _gradients(scene, spp, seed, settings, samples_per_pass, shift, primal) -> tuple[dict, dict | None]:

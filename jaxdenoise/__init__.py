@@ -18,7 +18,7 @@ from .methods import names as method_names
 
 # EXR I/O needs OpenImageIO; it is imported on first use so that `jaxdenoise` and its training path
 # import on machines without it (a GPU box training from an exported cache).
-_IO_NAMES = ("ExrError", "read_buffers", "read_image", "read_sequence", "write_buffers", "write_image",
+_IO_NAMES = ("ExrError", "buffers_from_channels", "read_buffers", "read_image", "read_sequence", "write_buffers", "write_image",
              "write_display")
 
 
@@ -35,6 +35,6 @@ __version__ = "0.4.0"
 
 __all__ = [
     "Buffers", "BuffersError", "ExrError", "JaxdenoiseError", "JaxdenoiseWarning", "MethodError", "denoise", "denoise_sequence", "load", "method_names",
-    "read_buffers", "read_image", "read_sequence", "stack", "write_buffers", "write_image", "write_display",
+    "buffers_from_channels", "read_buffers", "read_image", "read_sequence", "stack", "write_buffers", "write_image", "write_display",
     "__version__",
 ]

@@ -53,9 +53,10 @@ def resolve(method: str | Method, weights: str | os.PathLike | None = None) -> t
         except (TypeError, ValueError) as e:
             raise checkpoint.WeightsError(f"{folder}: config.json does not fit method '{m.name}' ({e})") from None
         m = Method(name=m.name, module=m.module, config=config)
-    # The structure, shapes and values the method's init gives: a damaged or foreign file fails here,
-    # by name, not deep inside the method.
-    template = m.init(jax.random.PRNGKey(0))
+    # The structure, shapes and dtypes the method's init gives: a damaged or foreign file fails here,
+    # by name, not deep inside the method. Abstract (jax.eval_shape): running a network's init only
+    # to read its shapes took 14 s for demc, more than loading and compiling it.
+    template = jax.eval_shape(m.init, jax.random.PRNGKey(0))
     params = checkpoint.restore_like(template, params, where=str(folder), finite=True)
     return m, jax.tree_util.tree_map(np.asarray, params)
 

@@ -175,14 +175,15 @@ def restore_like(template: Any, loaded: Any, *, where: str = "checkpoint", finit
         if key not in flat:
             raise WeightsError(f"{where}: entry '{key}' is missing")
         value = flat[key]
-        if tuple(np.shape(value)) != tuple(np.shape(node)):
-            raise WeightsError(f"{where}: entry '{key}' has shape {np.shape(value)}; expected {np.shape(node)}")
+        shape = tuple(node.shape) if hasattr(node, "shape") else np.shape(node)  # an array or jax.eval_shape's struct
+        if tuple(np.shape(value)) != shape:
+            raise WeightsError(f"{where}: entry '{key}' has shape {np.shape(value)}; expected {shape}")
         if finite:
             n_bad = int(np.size(value) - np.isfinite(value).sum())
             if n_bad:
                 raise WeightsError(f"{where}: entry '{key}' has {n_bad} NaN/Inf value(s)")
         used.add(key)
-        return jnp.asarray(value, dtype=jnp.asarray(node).dtype)
+        return jnp.asarray(value, dtype=node.dtype if hasattr(node, "dtype") else jnp.asarray(node).dtype)
 
     out = rec(template, "")
     extra = sorted(set(flat) - used)

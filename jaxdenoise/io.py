@@ -26,7 +26,7 @@ from .fsutil import atomic_path
 from .errors import JaxdenoiseError, JaxdenoiseWarning
 
 __all__ = [
-    "ExrError", "REPAIR_POLICY", "AOV_ALIASES", "LAYER_KEYS", "DISPLAY_SUFFIXES", "parse_channels", "read_buffers", "read_image", "read_sequence",
+    "ExrError", "REPAIR_POLICY", "AOV_ALIASES", "LAYER_KEYS", "DISPLAY_SUFFIXES", "parse_channels", "buffers_from_channels", "read_buffers", "read_image", "read_sequence",
     "write_buffers", "write_image", "write_display", "write_output", "read_header",
 ]
 
@@ -315,6 +315,34 @@ def read_buffers(path: str | os.PathLike, *, repair: str | None = None,
         raise JaxdenoiseError(f"repair={repair!r}; expected None or 'zero'")
     path = Path(path)
     chans, attrs = _read_pixels(path)
+    return _from_channels(path, chans, attrs, repair=repair, required=required, channels=channels, spp=spp, file=path)
+
+
+def buffers_from_channels(chans: Mapping[str, Any], attrs: Mapping[str, Any] | None = None, *,
+                          where: str = "channels", repair: str | None = None,
+                          required: tuple[str, ...] = ("color",), channels: Mapping[str, str] | None = None,
+                          spp: int | None = None) -> tuple[Buffers, dict[str, Any]]:
+    """`read_buffers` on channels already in memory: ``chans`` maps a channel name (``R``, ``N.X``,
+    ``nn.X``, ``dd.T``, ...) to an (H, W) array, ``attrs`` are header attributes (``spp``, ...).
+    The same names, `AOV_ALIASES`, ``channels=`` mappings, checks and repairs as a file, so a frame
+    gives the same `Buffers` in memory as after an EXR round trip; ``where`` names the source in
+    every error (e.g. ``"mitsuba tensor"``)."""
+    if repair not in (None, "zero"):
+        raise JaxdenoiseError(f"repair={repair!r}; expected None or 'zero'")
+    arrays: dict[str, np.ndarray] = {}
+    shape = None
+    for name, value in chans.items():
+        arr = np.asarray(value, dtype=np.float32)
+        if arr.ndim != 2 or (shape is not None and arr.shape != shape):
+            raise JaxdenoiseError(f"{where}: channel '{name}' has shape {arr.shape}; expected one (H, W) plane"
+                                  + (f" like the others, {shape}" if shape is not None else ""))
+        shape = arr.shape
+        arrays[str(name)] = arr
+    return _from_channels(where, arrays, dict(attrs or {}), repair=repair, required=required, channels=channels,
+                          spp=spp, file=None)
+
+
+def _from_channels(path, chans: dict, attrs: dict, *, repair, required, channels, spp, file) -> tuple[Buffers, dict]:
     chosen, sources = _resolve_channels(path, chans, channels)
     fields: dict[str, Any] = {}
     repaired: dict[str, int] = {}
@@ -336,9 +364,9 @@ def read_buffers(path: str | os.PathLike, *, repair: str | None = None,
     if attrs.get("spp") is not None:
         fields["spp"] = np.float32(attrs["spp"])
     for field in EXR_MATRICES:
-        m = _read_matrix(path, attrs, field)
+        m = _read_matrix(path, attrs, field) if file is not None else attrs.get(field)
         if m is not None:
-            fields[field] = m
+            fields[field] = np.asarray(m, np.float32)
     used = {c for names in chosen.values() for c in names}
     ignored = sorted(set(chans) - used)
     if ignored:
@@ -354,12 +382,12 @@ def read_buffers(path: str | os.PathLike, *, repair: str | None = None,
             how = (f" (here perhaps channels={guess}, CLI --channels {','.join(f'{k}={v}' for k, v in guess.items())})"
                    if guess else "")
             warnings.warn(f"{path}: channel(s) {lookalike} look like a buffer but were not read; to read them, "
-                          f"map them{how} with {_CHANNELS_HELP}", JaxdenoiseWarning, stacklevel=2)
+                          f"map them{how} with {_CHANNELS_HELP}", JaxdenoiseWarning, stacklevel=3)
     if sources:
         attrs["channels_from"] = {f: " ".join(v) for f, v in sources.items()}
     if repaired:
         attrs["repaired"] = repaired
-        warnings.warn(f"{path}: repaired bad pixels {repaired} ({REPAIR_POLICY})", RuntimeWarning, stacklevel=2)
+        warnings.warn(f"{path}: repaired bad pixels {repaired} ({REPAIR_POLICY})", RuntimeWarning, stacklevel=3)
     try:
         buffers = Buffers(**fields).validate(required, where=str(path))
     except BuffersError as e:

@@ -46,6 +46,7 @@ import numpy as np
 
 from .. import nn
 from ..buffers import Buffers
+from ..color import gamma
 from ..nn.state import call
 from ..errors import JaxdenoiseError
 from ..pipeline import carried_stat, carried_stats
@@ -290,7 +291,7 @@ def inputs(params: dict, buffers: Any, config: Config) -> tuple[jax.Array, jax.A
     get = _getter(buffers)
     color = jnp.asarray(get("color"), jnp.float32)
     color = jnp.where(jnp.isfinite(color), jnp.maximum(color, 0.0), 0.0)
-    x_color = jnp.power(color, 1.0 / config.gamma)
+    x_color = gamma(color, config.gamma)  # color ** (1 / gamma), with a finite gradient at 0 (Dr.Jit bridge)
     feats = jnp.concatenate([jnp.asarray(get(f), jnp.float32) for f in FEATURES], -1)
     feats = jnp.where(jnp.isfinite(feats), feats, 0.0)
     sg = jax.lax.stop_gradient  # statistics, never trained (FROZEN)
