@@ -722,6 +722,7 @@ STUDIES: dict[str, tuple[str, str]] = {
     "tune_nlm.md": ("tune_filters", "tune_nlm.json"),
     "reliability.md": ("reliability_report", "reliability.json"),
     "stability.md": ("stability_report", "stability.json"),
+    "inverse_rendering/inverse_rendering.md": ("inverse_rendering", "inverse_rendering/inverse_rendering.json"),
 }
 
 # Pages written by hand that state no measured number of their own (they point to the pages above).

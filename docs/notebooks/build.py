@@ -180,6 +180,73 @@ for label, methods in (("gaussian only", ["gaussian"]), ("lbf", ["lbf"]), ("ever
 print(f"leaving out what gaussian does not need saves {100 * (1 - timings['gaussian only'] / timings['every buffer']):.0f} % "
       "of the render time")"""),
     ],
+    "differentiable": [
+        ("md", "# Denoisers inside Mitsuba's render loop\n\nRender a Mitsuba scene straight into "
+               "`jaxdenoise.Buffers` (no EXR on the way) and denoise it; then put a denoiser inside an "
+               "inverse-rendering loop: `data_gen.differentiable` wraps a JAX method with `drjit.wrap`, so "
+               "`dr.backward` reaches the scene parameters through it (docs/drjit_bridge.md). The colour comes "
+               "from Mitsuba's differentiable `prb` integrator; the albedo, normal and position buffers DEMC "
+               "reads come from a detached pass of data_gen's integrator, a bias the page measures."),
+        ("code", SETUP),
+        ("code", """\
+import drjit as dr
+import mitsuba as mi
+
+scene = data_gen.load_scene(data_gen.default_scene(), width=64, height=64)
+frame = data_gen.render_frame(scene, spp=4, methods=["demc"], seed=0)   # Buffers in memory
+print("buffers:", sorted(frame.present()))
+clean = np.asarray(mi.render(scene, spp=1024, seed=1))
+out = jd.denoise(frame, "demc")
+from jaxdenoise import metrics
+tone = lambda x: np.clip(x, 0, 1) ** (1 / 2.2)
+fig, axes = plt.subplots(1, 3, figsize=(9, 3))
+for ax, (t, img) in zip(axes, [("4 spp", frame.color), ("demc", out), ("1024 spp", clean)]):
+    ax.imshow(tone(img)); ax.set_axis_off()
+    ax.set_title(t if t == "1024 spp" else f"{t}, RelMSE {float(metrics.relmse(img, clean)):.3g}", fontsize=9)"""),
+        ("md", "An inverse-rendering run: recover the left wall's albedo and the light's intensity from a "
+               "1024-spp target, starting from grey and half the light, with the loss on the 4-spp render "
+               "denoised by DEMC. Its auxiliary buffers are re-rendered (detached) every step."),
+        ("code", """\
+params = mi.traverse(scene)
+key_albedo, key_light = "left.bsdf.reflectance.value", "light.emitter.radiance.value"
+truth = {"albedo": np.asarray(params[key_albedo]).ravel().copy(), "light": mi.Color3f(params[key_light])}
+prb = mi.load_dict({"type": "prb", "max_depth": 4})
+den = data_gen.differentiable("demc")
+target = mi.TensorXf(clean)
+opt = mi.ad.Adam(lr=0.03)
+opt["albedo"], opt["log_scale"] = mi.Color3f(0.4), mi.Float(np.log(0.5))
+
+def update():
+    opt["albedo"] = dr.clip(opt["albedo"], 0.01, 0.99)
+    params[key_albedo] = opt["albedo"]
+    params[key_light] = truth["light"] * dr.exp(opt["log_scale"])
+    params.update()
+
+update()
+history, t0 = [], time.perf_counter()
+for it in range(60):
+    img = mi.render(scene, params, spp=4, seed=2 * it + 1, seed_grad=2 * it + 2, integrator=prb)
+    aux = den.aux(scene, spp=4, seed=10_000 + it)          # detached albedo, normal, position, ...
+    loss = dr.mean(dr.square(den(img, aux) - target) / (dr.square(target) + 0.01), axis=None)
+    dr.backward(loss)
+    opt.step(); update()
+    history.append((float(np.asarray(loss).ravel()[0]), np.asarray(opt["albedo"]).ravel().copy(),
+                    float(np.exp(np.asarray(opt["log_scale"]).ravel()[0]))))
+print(f"{len(history)} steps in {time.perf_counter() - t0:.1f} s (first step compiles)")
+print("albedo", np.round(history[-1][1], 3), "true", np.round(truth["albedo"], 3),
+      "| light scale", round(history[-1][2], 3), "true 1")"""),
+        ("code", """\
+fig, axes = plt.subplots(1, 2, figsize=(9, 3))
+axes[0].semilogy([h[0] for h in history]); axes[0].set_title("loss (RelMSE, denoised)", fontsize=9)
+for c, name in enumerate("RGB"):
+    axes[1].plot([h[1][c] for h in history], color=name.lower(), label=f"albedo {name}")
+    axes[1].axhline(truth["albedo"][c], color=name.lower(), ls=":")
+axes[1].plot([h[2] for h in history], "k", label="light scale"); axes[1].axhline(1, color="k", ls=":")
+axes[1].legend(fontsize=7); axes[1].set_title("parameters (dotted: truth)", fontsize=9)
+plt.tight_layout()"""),
+        ("md", "docs/results/inverse_rendering/inverse_rendering.md measures this at 1, 4 and 16 spp on two "
+               "scenes, against the raw-render loss at equal wall time, with the detachment bias of the gradient."),
+    ],
 }
 
 
