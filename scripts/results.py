@@ -548,11 +548,15 @@ def _filters_poisson_goals(results: Path) -> str:
     dct_median = med[len(med) // 2] if len(med) % 2 else (med[len(med) // 2 - 1] + med[len(med) // 2]) / 2
     worst_res = max(r["residual"] for r in dct)
     small = min(dct, key=lambda r: r["alpha"])
-    l1 = load(results, "poisson_l1_quiet/poisson.json")["records"]
+    l1 = load(results, "poisson_l1_radmm/poisson.json")["records"]
     l1 = [r for r in l1 if r.get("table") == "l1"]
     preset = next(r for r in l1 if r["solver"] == "irls" and r["irls_iters"] == 20 and r["cg_iters"] == 50)
-    below = [r for r in l1 if r["solver"] == "admm" and r["energy_gap"] <= preset["energy_gap"]]
-    fastest = min(below, key=lambda r: r["seconds"]) if below else None
+    converged = [r for r in l1 if r["energy_gap"] <= 1e-3]
+    fastest = min(converged, key=lambda r: r["seconds"]) if converged else None
+    admm = [r for r in converged if r["solver"] == "admm"]
+    admm = min(admm, key=lambda r: r["seconds"]) if admm else None
+    setting = lambda r: (f"{r['irls_iters']}x{r['cg_iters']}" if r["solver"] == "irls"  # noqa: E731
+                         else f"{r['iters']} iterations")
     rows = [
         [f"cross-bilateral {2 * f['radius'] + 1}x{2 * f['radius'] + 1}, 5 features, {w}x{h}", "<= 3.4 s",
          f"{'met' if ours['median_s'] <= 3.4 else '**missed**'}: {num(ours['median_s'], '.1f')} s wall, "
@@ -572,11 +576,13 @@ def _filters_poisson_goals(results: Path) -> str:
          f"DCT's time, residual {num(cg[small['alpha']]['residual'], '.1e')}; `jax.scipy.fft.dctn` pair "
          f"{num(pair['jax.scipy.fft.dctn'] / pair['jaxdenoise dct_apply (2-D Makhoul)'], '.1f')}x ours",
          "`poisson_l2_quiet/poisson.md`"],
-        ["L1 at 1280x720, alpha 0.2", "<= 0.67 s converged",
-         f"**missed**: IRLS 20x50 preset {num(preset['seconds'], '.1f')} s at energy gap {num(preset['energy_gap'], '.1e')}"
-         + (f"; fastest ADMM at or below that gap: {fastest['iters']} iterations, {num(fastest['seconds'], '.1f')} s, "
-            f"gap {num(fastest['energy_gap'], '.1e')}" if fastest else ""),
-         "IRLS vs ADMM in the same run", "`poisson_l1_quiet/poisson.md`"],
+        ["L1 at 1280x720, alpha 0.2", "<= 2 s at energy gap <= 1e-3 (issue 37; Guo et al. Sec. 6.7: 0.67 s on a GPU)",
+         (f"{'met' if fastest['seconds'] <= 2.0 else '**missed**'}: {fastest['solver']} {setting(fastest)}, "
+          f"{num(fastest['seconds'], '.2f')} s at energy gap {num(fastest['energy_gap'], '.1e')}" if fastest
+          else "**missed**: no setting reached an energy gap of 1e-3"),
+         f"IRLS 20x50 preset {num(preset['seconds'], '.1f')} s at gap {num(preset['energy_gap'], '.1e')}"
+         + (f"; plain ADMM at or below 1e-3: {setting(admm)}, {num(admm['seconds'], '.1f')} s" if admm else ""),
+         "`poisson_l1_radmm/poisson.md`"],
     ]
     return table(["what", "goal", "measured", "peer in the same run", "page"], rows, "lllll")
 
@@ -711,6 +717,7 @@ STUDIES: dict[str, tuple[str, str]] = {
     "poisson.md": ("bench_poisson", "poisson.json"),
     "poisson_l1_quiet/poisson.md": ("bench_poisson", "poisson_l1_quiet/poisson.json"),
     "poisson_l2_quiet/poisson.md": ("bench_poisson", "poisson_l2_quiet/poisson.json"),
+    "poisson_l1_radmm/poisson.md": ("bench_poisson", "poisson_l1_radmm/poisson.json"),
     "poisson_rendered/poisson.md": ("bench_poisson", "poisson_rendered/poisson.json"),
     "data_gen_gradient.md": ("bench_gradient_cost", "data_gen_gradient.json"),
     "data_gen.md": ("bench_data_gen", "data_gen.json"),

@@ -40,10 +40,10 @@ def test_check_module_names_incomplete_hook_groups():
 # them).
 SMALL = {"lbf": {"radius": 1, "prefilter": False}, "lbf-nlm": {"radius": 1, "prefilter": False},
          "bilateral": {"radius": 2, "prefilter": False}, "nlm": {"radius": 2, "prefilter": False}}
-# Checked by the energy they minimise instead of pixel by pixel: poisson-l1's default solver (IRLS)
-# reweights by 1 / |residual| with CG stopped at float32's rounding floor, so two compilations of the
-# same arithmetic (a frame alone, the same frame in a batch of two) land on different points of the
-# L1 energy's flat bottom (measured: pixels 2e-2 apart, energies 1.6e-5 relative apart).
+# Checked by the energy they minimise instead of pixel by pixel: an L1 solve stops on the L1 energy's
+# flat bottom, so two compilations of the same arithmetic (a frame alone, the same frame in a batch of
+# two) can land on different points of it (measured with the IRLS solver: pixels 2e-2 apart, energies
+# 1.6e-5 relative apart).
 BY_ENERGY = {"poisson-l1": "l1"}
 
 

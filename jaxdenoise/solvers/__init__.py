@@ -12,6 +12,7 @@ from .poisson import (
     normal_matvec,
     poisson_l1_admm,
     poisson_l1_irls,
+    poisson_l1_radmm,
     poisson_l2_cg,
     poisson_l2_dct,
     residual,
@@ -19,6 +20,6 @@ from .poisson import (
 
 __all__ = [
     "SolverError", "adam", "dct2", "energy", "gradient", "gradient_adjoint", "idct2",
-    "laplacian_eigenvalues", "normal_matvec", "poisson_l1_admm", "poisson_l1_irls", "poisson_l2_cg",
-    "poisson_l2_dct", "residual", "rprop",
+    "laplacian_eigenvalues", "normal_matvec", "poisson_l1_admm", "poisson_l1_irls", "poisson_l1_radmm",
+    "poisson_l2_cg", "poisson_l2_dct", "residual", "rprop",
 ]
