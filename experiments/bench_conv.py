@@ -136,6 +136,14 @@ def main() -> None:
     res["train_step"] = train_step(RAE_WIDTHS, args.runs)
     print(f"train step: {res['train_step']['crops_per_s']:.1f} crops/s, {res['train_step']['gflops']:.1f} GFLOP/s",
           flush=True)
+    from jaxdenoise.nn import conv as nn_conv
+
+    default, nn_conv.WEIGHT_GRADIENT = nn_conv.WEIGHT_GRADIENT, "xla"  # the path before the row-block gradient
+    try:
+        res["train_step_xla_gradient"] = train_step(RAE_WIDTHS, args.runs)
+    finally:
+        nn_conv.WEIGHT_GRADIENT = default
+    print(f"train step, XLA's kernel gradient: {res['train_step_xla_gradient']['crops_per_s']:.1f} crops/s", flush=True)
     if args.data:
         from jaxdenoise import pipeline
 
@@ -166,7 +174,7 @@ def page(res: dict) -> str:
     """``conv.md`` from ``conv.json`` alone (a missing value raises, never prints a hole)."""
     all_measured(res, "conv.json")
     mm, forward = res["matmul"], dict(res["forward"])
-    timings = [mm, res["train_step"], *forward.values()]
+    timings = [mm, res["train_step"], res["train_step_xla_gradient"], *forward.values()]
     runs = {len(x["runs_s"]) for x in timings}
     if len(runs) != 1:
         raise ValueError(f"conv.json: the timings have different run counts {sorted(runs)}")
@@ -200,6 +208,10 @@ def page(res: dict) -> str:
               f"{1e3 * t['median_s']:.0f} ms per step: **{t['crops_per_s']:.1f} crops/s**, {t['gflop']:.1f} GFLOP, "
               f"{t['gflops']:.1f} GFLOP/s ({t['gflops'] / mm['gflops']:.2f} of the matmul rate); compile "
               f"{t['compile_s']:.1f} s.", ""]
+    x = res["train_step_xla_gradient"]
+    lines += [f"The same step with XLA's own kernel gradient (`nn.conv.WEIGHT_GRADIENT = \"xla\"`, the path before "
+              f"the row-block gradient): {1e3 * x['median_s']:.0f} ms, {x['crops_per_s']:.1f} crops/s; the default is "
+              f"**{x['median_s'] / t['median_s']:.2f}x** its rate.", ""]
     if "pipeline" in res:
         q = res["pipeline"]
         lines += ["## Training-data pipeline", "",
@@ -211,7 +223,9 @@ def page(res: dict) -> str:
               "- `jaxdenoise.nn.conv` makes two exact rewrites that XLA's CPU back end does not: input channels "
               "are zero-padded to a multiple of 8 before every spatial convolution, and a 1x1 stride-1 "
               "convolution is a matrix product over channels (`jnp.dot`). Transposed convolutions are computed "
-              "per output phase instead of over a zero-dilated input.",
+              "per output phase instead of over a zero-dilated input. Reverse mode computes a spatial "
+              "convolution's kernel gradient as a scan of row-block im2col matrix products (`_conv_by_rows`) "
+              "instead of XLA's transposed convolution.",
               "- A small U-Net trained for 20 minutes on real crops (the issue's end-to-end check) is "
               "`experiments/unet_20min.py`; its results are in `unet_20min.json`.", "",
               "## Run", "",

@@ -102,6 +102,36 @@ def test_conv_matches_numpy_and_predicts_its_shape(h, w, k, s, d, pad):
         np.testing.assert_allclose(y[n], want, rtol=1e-5, atol=1e-5)  # float32 sums of <= 27 terms
 
 
+@pytest.mark.parametrize("branch", ["row blocks", "padded channels"])
+@pytest.mark.parametrize("h,w,k,s,d,pad", CONV_CASES + [(37, 29, 3, 1, 1, "SAME"), (23, 41, 3, 2, 2, "SAME")])
+def test_fast_kernel_gradient_equals_xlas(h, w, k, s, d, pad, branch, monkeypatch):
+    """The default kernel gradient (`nn.conv.WEIGHT_GRADIENT = "fast"`) equals XLA's transposed
+    convolution in value, reverse and forward mode, on odd sizes, strides, dilations and explicit
+    padding, in both of its branches (the size threshold moved so that every layer takes one): row
+    blocks (a scan of im2col matrix products; the last two cases span several blocks, the block
+    shrunk to 64 pixels) and XLA's with 5 output channels padded to 8. Relative tolerance 1e-5:
+    float32 sums in another order."""
+    monkeypatch.setattr(nn.conv, "BLOCK_PIXELS", 64)
+    monkeypatch.setattr(nn.conv, "ROW_BLOCK_MIN_PIXELS", 0 if branch == "row blocks" else 10 ** 9)
+    init, apply = nn.Conv(5, k, stride=s, dilation=d, padding=pad)
+    _, params = init(jax.random.PRNGKey(0), (2, h, w, 3))
+    x = jnp.asarray(_x(2, h, w, 3))
+    g = jnp.asarray(_x(*apply(params, x).shape))
+
+    def run(kind):
+        monkeypatch.setattr(nn.conv, "WEIGHT_GRADIENT", kind)
+        f = lambda p, v: jnp.vdot(apply(p, v), g)
+        val, grads = jax.jit(jax.value_and_grad(f, argnums=(0, 1)))(params, x)
+        _, tangent = jax.jvp(lambda p: apply(p, x), (params,), (jax.tree_util.tree_map(jnp.ones_like, params),))
+        return val, grads, tangent
+
+    fast, xla = run("fast"), run("xla")
+    np.testing.assert_array_equal(np.asarray(fast[0]), np.asarray(xla[0]))  # the primal is XLA's, bit for bit
+    for a, b in zip(jax.tree_util.tree_leaves(fast[1:]), jax.tree_util.tree_leaves(xla[1:])):
+        scale = float(np.max(np.abs(np.asarray(b)))) or 1.0
+        np.testing.assert_allclose(np.asarray(a) / scale, np.asarray(b) / scale, rtol=0, atol=1e-5)
+
+
 def test_conv_leading_axes_and_no_bias():
     init, apply = nn.Conv(2, 3, bias=False)
     shape, params = init(jax.random.PRNGKey(1), (3, 2, 6, 5, 4))

@@ -10,8 +10,9 @@
 - ``radius``: keyword-only, static; the window is ``(2 radius + 1)^2``. Default ``ceil(3 sigma)``
   (needs a concrete ``sigma``).
 
-Separable: one horizontal and one vertical pass of shifted-slice sums (planar layout) with the
-unnormalized kernel ``exp(-d^2 / (2 sigma^2))`` (centre weight 1).
+Separable: one horizontal and one vertical pass (planar layout) with the unnormalized kernel
+``exp(-d^2 / (2 sigma^2))`` (centre weight 1): shifted-slice sums below `BANDED_MIN_RADIUS`, tiled
+banded matrix products from it (the same sums; GradNet's radius-45 post-process 5.6x faster).
 
 Edge handling: pixels outside the image get zero weight and each output pixel is divided by the
 sum of the weights that fell inside the image, i.e. the kernel is renormalized at the border (no
@@ -64,6 +65,35 @@ def _correlate(x: jax.Array, taps: jax.Array, axis: int) -> jax.Array:
     return out
 
 
+# Output samples per tile of `_correlate_banded`; each tile is one (T + 2r) x T matrix product.
+BAND_TILE = 128
+# Radii from which a pass runs as banded matrix products instead of shifted-slice sums. Measured on
+# this CPU (jax 0.10.2, 2 cores), the whole `gaussian` of a 1280x720 image, slices / banded ms:
+# 3 channels r = 8: 7.1 / 17.4, r = 16: 48.2 / 16.7, r = 27: 86.9 / 31.5; 6 channels r = 8:
+# 64.5 / 46.6, r = 16: 114 / 51, r = 45 (GradNet's Eq. 13): 399 / 71.
+BANDED_MIN_RADIUS = 12
+
+
+def _correlate_banded(x: jax.Array, taps: jax.Array, axis: int) -> jax.Array:
+    """`_correlate` as matrix products: the axis is cut into tiles of `BAND_TILE` outputs, each tile's
+    ``T + 2r`` inputs (zero-padded like `_correlate`) times the ``(T + 2r, T)`` band matrix
+    ``B[k, j] = taps[k - j]`` (zero off the band). The same sums in another order (float32
+    rounding, relative 1e-6); it trades about ``(T + 2r) / (2r + 1)`` times the multiply-adds for
+    the matmul's rate, which pays from `BANDED_MIN_RADIUS`."""
+    k = taps.shape[0]
+    r = (k - 1) // 2
+    xm = jnp.moveaxis(x, axis, -1)
+    n = xm.shape[-1]
+    t = min(BAND_TILE, n)
+    tiles = -(-n // t)
+    xp = jnp.pad(xm, [(0, 0)] * (xm.ndim - 1) + [(r, tiles * t - n + r)])
+    windows = jnp.stack([xp[..., i * t: i * t + t + 2 * r] for i in range(tiles)], axis=-2)  # (..., tiles, t + 2r)
+    d = jnp.arange(t + 2 * r)[:, None] - jnp.arange(t)[None, :]
+    band = jnp.where((d >= 0) & (d <= 2 * r), taps[jnp.clip(d, 0, 2 * r)], 0.0).astype(x.dtype)
+    y = jnp.matmul(windows, band, precision=jax.lax.Precision.HIGHEST).reshape(xm.shape[:-1] + (tiles * t,))
+    return jnp.moveaxis(y[..., :n], -1, axis)
+
+
 def gaussian(image: Any, sigma: Any, *, radius: int | None = None) -> jax.Array:
     """Separable Gaussian blur of an ``(H, W, C)`` image with border renormalization (module docstring)."""
     img = as_image(image, "image")
@@ -94,7 +124,8 @@ def gaussian(image: Any, sigma: Any, *, radius: int | None = None) -> jax.Array:
         return x.astype(out_dtype)
     taps = gaussian_kernel_1d(sigma, radius, dt)
     h, w = x.shape[:2]
-    num = _correlate(_correlate(to_planar(x), taps, 2), taps, 1)
+    corr = _correlate_banded if radius >= BANDED_MIN_RADIUS else _correlate
+    num = corr(corr(to_planar(x), taps, 2), taps, 1)
     # The in-image region is a rectangle, so the normalizer is the outer product of the 1-D ones;
     # each is >= 1 because the centre tap is 1 (module docstring).
     den = _correlate(jnp.ones((1, h, 1), dt), taps, 1) * _correlate(jnp.ones((1, 1, w), dt), taps, 2)

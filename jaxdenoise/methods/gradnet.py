@@ -225,7 +225,10 @@ def _he(config: Config):
     return nn.he_normal_init(2.0 / (1.0 + config.slope ** 2))
 
 
-def _layers(config: Config) -> dict:
+def layers(config: Config) -> dict:
+    """The architecture (Guo 2019 Fig. 4, Sec. 4.4) as named stax layers: ``data`` / ``grad`` (the two
+    encoders' stride-2 levels), ``res``, ``dec``, ``gbranch``, and ``out`` / ``head`` where configured;
+    `forward` runs them (experiments/profile_gradnet.py times each)."""
     w = [int(v) for v in config.widths]
     he = _he(config)
 
@@ -256,7 +259,7 @@ def _layers(config: Config) -> dict:
 
 
 def init(key, config: Config) -> dict:
-    L = _layers(config)
+    L = layers(config)
     w = [int(v) for v in config.widths]
     keys = iter(jax.random.split(key, 16 + config.res_blocks))
     s = 32
@@ -288,7 +291,7 @@ def num_params(config: Config) -> int:
 def forward(params: dict, x: dict, config: Config) -> jax.Array:
     """The autoencoder on prepared inputs (`inputs`, H and W multiples of 8): the output image in the
     mu-law domain."""
-    L = _layers(config)
+    L = layers(config)
     hd = jnp.concatenate([x["tb"], x["feat"]], -1)
     hg = jnp.concatenate([x["tdx"], x["tdy"]], -1)
     skips_d, skips_g = [], []
@@ -313,7 +316,7 @@ def forward(params: dict, x: dict, config: Config) -> jax.Array:
 
 def g_branch(params: dict, x: dict, config: Config) -> jax.Array:
     """Per-pixel first-order derivatives ``G``: ``(..., H, W, 7, 3)``."""
-    g = _layers(config)["gbranch"][1](params["gbranch"], jnp.concatenate([x["tb"], x["feat"]], -1))
+    g = layers(config)["gbranch"][1](params["gbranch"], jnp.concatenate([x["tb"], x["feat"]], -1))
     return g.reshape(g.shape[:-1] + (N_FEAT, 3))
 
 

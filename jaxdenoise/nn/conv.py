@@ -16,17 +16,23 @@
 - `pad_to_multiple` / `crop_to`: any input size through a network of total stride ``m``: pad the
   spatial axes up to a multiple of ``m`` and crop the output back (the one helper for it).
 
+Reverse mode computes a spatial convolution's kernel gradient through the layer's own derivative
+rule (`WEIGHT_GRADIENT`, `_kernel_tangent`): row-block im2col matrix products on large images,
+XLA's transposed convolution on small ones; the forward pass is XLA's convolution unchanged.
+
 Inputs may carry any number of leading axes (``(H, W, C)``, ``(N, H, W, C)``, ``(T, N, H, W, C)``);
 they are flattened into one batch axis around the XLA convolution and restored.
 """
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any, Sequence
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.custom_derivatives import SymbolicZero
 
 __all__ = ["Conv", "ConvTranspose", "he_normal_init", "bilinear_init", "identity_init", "pad_to_multiple",
            "crop_to"]
@@ -236,7 +242,108 @@ def _correlate(x: jax.Array, w: jax.Array, stride: tuple[int, int], pad: Any, di
     if extra:
         x = jnp.pad(x, ((0, 0), (0, 0), (0, 0), (0, extra)))
         w = jnp.pad(w, ((0, 0), (0, 0), (0, extra), (0, 0)))
+    if WEIGHT_GRADIENT == "xla":
+        return _xla_conv(x, w, stride, pad, dilation)
+    if WEIGHT_GRADIENT != "fast":
+        raise ValueError(f"nn.conv.WEIGHT_GRADIENT must be 'fast' or 'xla', got {WEIGHT_GRADIENT!r}")
+    return _conv(x, w, stride, pad, dilation)
+
+
+# How reverse mode computes a spatial convolution's kernel gradient: ``"fast"`` (the default) by
+# `_kernel_tangent`'s measured choice, ``"xla"`` as XLA's own transposed convolution everywhere (the
+# path before; no custom derivative). Read at trace time; experiments/bench_xla_flags.py and
+# bench_conv.py switch it to measure both in one run. On this CPU (jax 0.10.2, 2 cores) XLA's
+# kernel gradient takes 3-25x the forward pass on large images (1280x736, 48 -> 48 channels:
+# 1228 ms against a 59 ms forward; row blocks: 109 ms) but is as fast or faster than row blocks on
+# training crops of 64x64 and below (docs/results/conv.md).
+WEIGHT_GRADIENT = "fast"
+# Output pixels per row block of `_conv_by_rows`: the block's im2col matrix stays in cache. 2048
+# was the fastest of 2048-65536 on every large-image shape measured.
+BLOCK_PIXELS = 2048
+# Output images (H_out x W_out) above this many pixels take row blocks; at or below, XLA's kernel
+# gradient (measured: a 96x96 first layer, 8 -> 24 channels, 32 crops: 2.4x faster by row blocks;
+# 64x64, 32 -> 32, 28 crops: 1.6x slower; 48x48 and below: within 20 %).
+ROW_BLOCK_MIN_PIXELS = 4 * BLOCK_PIXELS
+
+
+def _xla_conv(x, w, stride, pad, dilation):
     return jax.lax.conv_general_dilated(x, w, stride, pad, rhs_dilation=dilation, dimension_numbers=_DN)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(2, 3, 4))
+def _conv(x, w, stride, pad, dilation):
+    """XLA's convolution, differentiated as ``dy = conv(dx, w) + conv(x, dw)`` with the kernel term
+    in `_kernel_tangent`'s form, so that its transpose (reverse mode's kernel gradient) is the
+    fastest measured for the layer's size rather than always XLA's transposed convolution. Forward
+    and reverse mode both work; the primal is XLA's convolution, bit for bit."""
+    return _xla_conv(x, w, stride, pad, dilation)
+
+
+@functools.partial(_conv.defjvp, symbolic_zeros=True)
+def _conv_jvp(stride, pad, dilation, primals, tangents):
+    x, w = primals
+    tx, tw = tangents
+    y = _xla_conv(x, w, stride, pad, dilation)
+    parts = []
+    if not isinstance(tx, SymbolicZero):
+        parts.append(_xla_conv(tx, w, stride, pad, dilation))
+    if not isinstance(tw, SymbolicZero):
+        parts.append(_kernel_tangent(x, tw, stride, pad, dilation).astype(y.dtype))
+    return y, (sum(parts[1:], parts[0]) if parts else jnp.zeros_like(y))
+
+
+def _kernel_tangent(x: jax.Array, tw: jax.Array, stride: tuple[int, int], pad: Any,
+                    dilation: tuple[int, int]) -> jax.Array:
+    """``conv(x, tw)``, the kernel term of the convolution's tangent, in the form whose transpose
+    (reverse mode's kernel gradient) was fastest on this CPU for its size (docs/results/conv.md):
+    row blocks (`_conv_by_rows`) for output images above `ROW_BLOCK_MIN_PIXELS` pixels; below, XLA's
+    transposed convolution, with the output channels zero-padded to a multiple of
+    `CHANNEL_MULTIPLE` (exact; 1.3-1.5x faster on RAE's 43 / 57 / 76 channels)."""
+    kh, kw, _, cout = tw.shape
+    ho = _conv_size(x.shape[1], kh, stride[0], dilation[0], pad, 0)
+    wo = _conv_size(x.shape[2], kw, stride[1], dilation[1], pad, 1)
+    if ho * wo > ROW_BLOCK_MIN_PIXELS:
+        return _conv_by_rows(x, tw, stride, pad, dilation)
+    extra = (-cout) % CHANNEL_MULTIPLE
+    if extra:
+        return _xla_conv(x, jnp.pad(tw, ((0, 0), (0, 0), (0, 0), (0, extra))), stride, pad, dilation)[..., :cout]
+    return _xla_conv(x, tw, stride, pad, dilation)
+
+
+def _conv_by_rows(x: jax.Array, w: jax.Array, stride: tuple[int, int], pad: Any,
+                  dilation: tuple[int, int]) -> jax.Array:
+    """The same correlation as `_xla_conv`, as a scan over blocks of output rows across the batch:
+    each block's im2col matrix (``n * rows * W_out`` pixels, about `BLOCK_PIXELS`, x
+    ``kh * kw * c_in``) times the kernel as a ``(kh kw c_in, c_out)`` matrix. Linear in ``w``; its
+    transpose, which reverse mode derives, is the sum over blocks of ``cols^T @ g``. The body is
+    rematerialised (`jax.checkpoint`), so reverse mode keeps ``x`` and not the 9x larger im2col
+    matrix."""
+    kh, kw, cin, cout = w.shape
+    n, h, wd, _ = x.shape
+    (sh, sw), (dh, dw) = stride, dilation
+    (plo, phi), (qlo, qhi) = (jax.lax.padtype_to_pads((h, wd), (dh * (kh - 1) + 1, dw * (kw - 1) + 1), stride, pad)
+                              if isinstance(pad, str) else pad)
+    ho, wo = _conv_size(h, kh, sh, dh, pad, 0), _conv_size(wd, kw, sw, dw, pad, 1)
+    if ho == 0 or wo == 0 or n == 0:
+        return jnp.zeros((n, ho, wo, cout), jnp.result_type(x, w))
+    rows = max(1, min(ho, BLOCK_PIXELS // (n * wo)))
+    blocks = -(-ho // rows)
+    span = sh * (rows - 1) + dh * (kh - 1) + 1  # padded input rows one block reads
+    need = sh * (blocks * rows - 1) + dh * (kh - 1) + 1  # ... and all blocks (the last one padded)
+    xp = jax.lax.pad(x, jnp.zeros((), x.dtype), ((0, 0, 0), (plo, need - h - plo, 0), (qlo, qhi, 0), (0, 0, 0)))
+    wm = w.reshape(kh * kw * cin, cout)
+
+    @jax.checkpoint
+    def body(carry, b):
+        xs = jax.lax.dynamic_slice_in_dim(xp, b * rows * sh, span, axis=1)
+        cols = jnp.concatenate([jax.lax.slice(xs, (0, dh * i, dw * j, 0),
+                                              (n, dh * i + sh * (rows - 1) + 1, dw * j + sw * (wo - 1) + 1, cin),
+                                              (1, sh, sw, 1))
+                                for i in range(kh) for j in range(kw)], axis=-1)
+        return carry, jnp.dot(cols, wm)
+
+    _, ys = jax.lax.scan(body, None, jnp.arange(blocks))  # (blocks, n, rows, W_out, c_out)
+    return ys.transpose(1, 0, 2, 3, 4).reshape(n, blocks * rows, wo, cout)[:, :ho]
 
 
 def _phase_taps(n_in: int, k: int, s: int, p: int, r: int) -> tuple[int, list[tuple[int, int]], int, int]:
