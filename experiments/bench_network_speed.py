@@ -63,10 +63,10 @@ def main() -> None:
         b = prepare(m, frame(h, w, sorted(m.needs() - {"spp"})))
         if m.temporal == "causal":  # one step of a sequence, the state carried in and out
             state = m.module.init_state(b, m.config)
-            r = timed(lambda p, st, x: m.module.step(p, st, x, m.config), params, state, b, runs=args.runs)
+            _, r = timed(lambda p, st, x: m.module.step(p, st, x, m.config), params, state, b, runs=args.runs)
             r["state_mb"] = sum(int(np.prod(a.shape)) * 4 for a in jax.tree_util.tree_leaves(state)) / 2**20
         else:
-            r = timed(lambda p, x: m.module.apply(p, x, m.config), params, b, runs=args.runs)
+            _, r = timed(lambda p, x: m.module.apply(p, x, m.config), params, b, runs=args.runs)
         r["params"] = int(sum(np.prod(a.shape) for a in jax.tree_util.tree_leaves(params)))
         r["vs_oidn"] = r["median_s"] / res["oidn"].get("median_s", float("nan"))
         r["vs_matmul_rate"] = r["gflops"] / res["matmul_2048"]["gflops"]
