@@ -716,6 +716,7 @@ STUDIES: dict[str, tuple[str, str]] = {
     "xla_flags/xla_flags.md": ("bench_xla_flags", "xla_flags/xla_flags.json"),
     "gradnet_profile/gradnet_profile.md": ("profile_gradnet", "gradnet_profile/gradnet_profile.json"),
     "network_memory/network_memory.md": ("network_memory", "network_memory/network_memory.json"),
+    "first_call/first_call.md": ("first_call", "first_call/first_call.json"),
     "filters.md": ("bench_filters", "bench_filters.json"),
     "poisson.md": ("bench_poisson", "poisson.json"),
     "poisson_l1_quiet/poisson.md": ("bench_poisson", "poisson_l1_quiet/poisson.json"),
