@@ -17,8 +17,9 @@
   spatial axes up to a multiple of ``m`` and crop the output back (the one helper for it).
 
 Reverse mode computes a spatial convolution's kernel gradient through the layer's own derivative
-rule (`WEIGHT_GRADIENT`, `_kernel_tangent`): row-block im2col matrix products on large images,
-XLA's transposed convolution on small ones; the forward pass is XLA's convolution unchanged.
+rule on CPU (`WEIGHT_GRADIENT`, `_kernel_tangent`): row-block im2col matrix products on large
+images, XLA's transposed convolution on small ones; the forward pass is XLA's convolution
+unchanged. On an accelerator, XLA's own kernel gradient is kept (the rule was measured on CPU).
 
 Inputs may carry any number of leading axes (``(H, W, C)``, ``(N, H, W, C)``, ``(T, N, H, W, C)``);
 they are flattened into one batch axis around the XLA convolution and restored.
@@ -242,10 +243,12 @@ def _correlate(x: jax.Array, w: jax.Array, stride: tuple[int, int], pad: Any, di
     if extra:
         x = jnp.pad(x, ((0, 0), (0, 0), (0, 0), (0, extra)))
         w = jnp.pad(w, ((0, 0), (0, 0), (0, extra), (0, 0)))
-    if WEIGHT_GRADIENT == "xla":
-        return _xla_conv(x, w, stride, pad, dilation)
-    if WEIGHT_GRADIENT != "fast":
+    if WEIGHT_GRADIENT not in ("fast", "xla"):
         raise ValueError(f"nn.conv.WEIGHT_GRADIENT must be 'fast' or 'xla', got {WEIGHT_GRADIENT!r}")
+    # The fast rule was measured on XLA:CPU only; on an accelerator XLA's own kernel gradient (cuDNN's)
+    # is kept.
+    if WEIGHT_GRADIENT == "xla" or jax.default_backend() != "cpu":
+        return _xla_conv(x, w, stride, pad, dilation)
     return _conv(x, w, stride, pad, dilation)
 
 
