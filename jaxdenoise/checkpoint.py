@@ -103,17 +103,30 @@ def _tuples(v: list) -> list:
     return [tuple(_tuples(x)) if isinstance(x, list) else x for x in v]
 
 
-def save(directory: str | os.PathLike, params: Any, config: Any = None, extra: dict | None = None) -> Path:
-    """Write ``params.npz`` and ``config.json`` into ``directory`` atomically; returns the directory."""
+# The entry of ``params.npz`` that holds a copy of ``config.json`` (UTF-8 bytes) when `save` is called
+# with ``embed_meta``: a training checkpoint's params and its step then change in one rename.
+META_ENTRY = "#meta.json"
+
+
+def save(directory: str | os.PathLike, params: Any, config: Any = None, extra: dict | None = None, *,
+         embed_meta: bool = False) -> Path:
+    """Write ``params.npz`` and ``config.json`` into ``directory`` atomically; returns the directory.
+
+    Each file is renamed into place on its own, so a process killed between the two renames leaves
+    new params beside the old ``config.json``. ``embed_meta`` also stores the metadata inside
+    ``params.npz`` (`META_ENTRY`), and `load` then reads it from there: a resumable checkpoint,
+    whose step must match its params, uses it (a run killed there resumed one step off)."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     flat = flatten(params)
-    with atomic_path(directory / PARAMS_FILE) as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, **flat)
     meta = {"config": config_to_dict(config) if config is not None else {}}
     if extra:
         meta.update(extra)
+    if embed_meta:
+        flat[META_ENTRY] = np.frombuffer(json.dumps(meta).encode("utf-8"), np.uint8)
+    with atomic_path(directory / PARAMS_FILE) as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **flat)
     write_json(directory / CONFIG_FILE, meta)
     return directory
 
@@ -141,12 +154,16 @@ def load(directory: str | os.PathLike) -> tuple[Any, dict]:
     if bad:
         raise WeightsError(f"{pfile}: entries {bad} are not numeric arrays (dtype "
                            f"{flat[bad[0]].dtype}); refused")
+    embedded = flat.pop(META_ENTRY, None)
     params = unflatten(flat)
     cfile = directory / CONFIG_FILE
     try:
-        meta = json.loads(cfile.read_text()) if cfile.is_file() else {}
+        if embedded is not None:  # the copy saved with the params (`save`'s embed_meta) is authoritative
+            meta = json.loads(bytes(np.asarray(embedded, np.uint8)).decode("utf-8"))
+        else:
+            meta = json.loads(cfile.read_text()) if cfile.is_file() else {}
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise WeightsError(f"{cfile}: not valid JSON ({e})") from None
+        raise WeightsError(f"{pfile if embedded is not None else cfile}: not valid JSON ({e})") from None
     if not isinstance(meta, dict) or not isinstance(meta.get("config", {}), dict):
         raise WeightsError(f"{cfile}: expected an object with a 'config' object")
     return params, meta

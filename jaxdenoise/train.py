@@ -513,7 +513,7 @@ def save_checkpoint(out_dir: Path, method: Method, run: TrainConfig, state: Stat
     checkpoint.save(out_dir / CHECKPOINT_DIR, stored, method.config,
                     extra={"method": method.name, "step": state.step, "history": state.history,
                            "bad_steps": state.bad_steps, "train": dataclasses.asdict(run), "seed": int(run.seed),
-                           "validation": state.validation})
+                           "validation": state.validation}, embed_meta=True)
 
 
 def save_weights(folder: Path, method: Method, run: TrainConfig, data: TrainingData, state: State,

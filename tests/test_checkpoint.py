@@ -51,3 +51,23 @@ def test_stale_temporaries_of_dead_writers_are_removed(tmp_path):
     live.write_text("in progress")
     removed = fsutil.remove_stale_temporaries(tmp_path)
     assert [p.name for p in removed] == left and sorted(p.name for p in tmp_path.iterdir()) == [live.name]
+
+
+def test_embedded_metadata_keeps_params_and_step_together(tmp_path):
+    """A training checkpoint (`embed_meta`) whose config.json is one write behind its params (a kill
+    between the two renames) still loads the step saved with the params; a plain save reads
+    config.json, and the embedded copy never appears among the params."""
+    from jaxdenoise import checkpoint
+
+    d = tmp_path / "ckpt"
+    checkpoint.save(d, {"w": np.ones(3, np.float32)}, extra={"step": 5}, embed_meta=True)
+    stale = json.loads((d / checkpoint.CONFIG_FILE).read_text())
+    checkpoint.save(d, {"w": np.full(3, 2.0, np.float32)}, extra={"step": 6}, embed_meta=True)
+    (d / checkpoint.CONFIG_FILE).write_text(json.dumps(stale))  # params renamed, config.json not yet
+    params, meta = checkpoint.load(d)
+    assert meta["step"] == 6 and set(params) == {"w"}
+    np.testing.assert_array_equal(params["w"], np.full(3, 2.0, np.float32))  # exact
+    plain = tmp_path / "weights"
+    checkpoint.save(plain, {"w": np.ones(3, np.float32)}, extra={"step": 1})
+    (plain / checkpoint.CONFIG_FILE).write_text(json.dumps({"config": {}, "step": 9}))
+    assert checkpoint.load(plain)[1]["step"] == 9
