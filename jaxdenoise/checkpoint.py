@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from .fsutil import atomic_path, write_json
+from .fsutil import atomic_path, json_text, write_json
 from .errors import JaxdenoiseError
 
 PARAMS_FILE = "params.npz"
@@ -123,7 +123,7 @@ def save(directory: str | os.PathLike, params: Any, config: Any = None, extra: d
     if extra:
         meta.update(extra)
     if embed_meta:
-        flat[META_ENTRY] = np.frombuffer(json.dumps(meta).encode("utf-8"), np.uint8)
+        flat[META_ENTRY] = np.frombuffer(json_text(meta).encode("utf-8"), np.uint8)
     with atomic_path(directory / PARAMS_FILE) as tmp:
         with open(tmp, "wb") as fh:
             np.savez(fh, **flat)

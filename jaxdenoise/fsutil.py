@@ -65,8 +65,13 @@ def write_text(path: str | os.PathLike, text: str) -> Path:
     return Path(path)
 
 
+def json_text(data: Any) -> str:
+    """The JSON text every file the library writes holds (sorted keys; NumPy values as lists)."""
+    return json.dumps(data, indent=2, sort_keys=True, default=_json_default) + "\n"
+
+
 def write_json(path: str | os.PathLike, data: Any) -> Path:
-    return write_text(path, json.dumps(data, indent=2, sort_keys=True, default=_json_default) + "\n")
+    return write_text(path, json_text(data))
 
 
 def _json_default(obj: Any) -> Any:
