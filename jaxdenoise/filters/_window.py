@@ -1,4 +1,6 @@
-"""The window engine shared by the bilateral and non-local-means filters (private).
+"""The per-offset window engine (private): the non-local-means filters' engine, and the
+cross-bilateral's reference engine (``engine="offsets"``; the cross-bilateral runs on the tiled
+engine of `_tiles.py` by default, docs/methods/bilateral.md).
 
 Every filter of Kalantari 2015 Eq. 1 is a normalized weighted sum over a square window,
 ``out_i = sum_j d_ij c_j / sum_j d_ij``. Materializing ``d`` as an ``H x W x (2r+1)^2`` tensor is
@@ -39,7 +41,7 @@ has ``(2r+1)^2`` values. It is meant for radius 1 to 2, not for the filter windo
 """
 from __future__ import annotations
 
-from typing import Callable, Mapping
+from typing import Callable, Mapping, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -69,6 +71,23 @@ def channel_sum(x: jax.Array) -> jax.Array:
     out = x[0:1]
     for c in range(1, x.shape[0]):
         out = out + x[c:c + 1]
+    return out
+
+
+def sum_channels(term: Callable[..., jax.Array], arrays: Sequence[jax.Array], split: bool = True) -> jax.Array:
+    """``sum_c term(*(a_c for a in arrays))`` over the channels (axis 0) as a one-channel array; an
+    array with one channel serves every channel. ``split``: one term per channel slice, summed in
+    channel order. A `channel_sum` of the term over the whole stack (``split=False``) is the same
+    sum, but XLA's CPU backend then writes the stack's term for every channel to memory before
+    summing: the tiled cross-bilateral ran 1.5x slower that way and the NLM prefilter wrote a 3-plane
+    array per window offset. The cross-bilateral's offset engine keeps ``split=False``, its form
+    as measured."""
+    if not split:
+        return channel_sum(term(*arrays))
+    out = None
+    for c in range(max(a.shape[0] for a in arrays)):
+        t = term(*(a[min(c, a.shape[0] - 1):][:1] for a in arrays))
+        out = t if out is None else out + t
     return out
 
 

@@ -36,10 +36,12 @@ infinitely selective):
     frame ``center`` (default ``T // 2``), and ``lam_temporal`` adds ``- lam_t (t_i - t_j)^2``.
     Returns the filtered centre frame ``(H, W, C)``.
 
-Shared behaviour (see ``_window.py``): running sums over the window, O(H W C) memory forward and
-backward; neighbours outside the image (or outside the frame range) get weight 0; the centre weight
-is exactly 1, so when all other weights underflow the output is the centre pixel (documented
-fallback, never NaN). A feature that is constant over the frame (checked on concrete inputs, i.e.
+Every filter here takes ``engine=`` (`ENGINES`): ``"tiles"`` (default, ``_tiles.py``: blocks of pixel
+pairs in cache, memory O(H W C) plus one group of pairs) or ``"offsets"`` (``_window.py``: running
+sums over the window offsets, O(H W C)); both evaluate the same per-pair log-weight and agree to
+float32 rounding (docs/methods/bilateral.md). Shared behaviour: neighbours outside the image (or
+outside the frame range) get weight 0; the centre weight is exactly 1, so when all other weights
+underflow the output is the centre pixel (documented fallback, never NaN). A feature that is constant over the frame (checked on concrete inputs, i.e.
 outside ``jit``) contributes a distance of exactly 0, so its term is dropped before tracing: the
 output is bit-identical and the filter does less work. Under ``jit`` the check cannot see values and
 the term is computed (same result); call `drop_constant_features` before ``jit`` to get the saving.
@@ -54,7 +56,8 @@ import numpy as np
 
 from ..arrays import compute_dtype, is_concrete
 from ._common import FilterError, as_image, as_param, check_radius
-from ._window import Neighbours, channel_sum, channel_sum_sq, clamp_dist, from_planar, to_planar, window_sums
+from ._tiles import tile_sums
+from ._window import Neighbours, clamp_dist, from_planar, sum_channels, to_planar, window_sums
 
 ZETA = 1e-10  # Eq. 11: keeps the colour distance finite where both variances are 0
 DELTA = 1e-4  # Eq. 12: floor of a feature's variance
@@ -150,60 +153,100 @@ def var_map(v, name, hw, lead=()):
     return jnp.asarray(v)
 
 
-def cross_sums(centre: dict, frames: list[dict], lam: dict, *, radius: int, dt_weights: list[Any]):
-    """Sum the window sums of Eq. 1 over neighbour frames (one frame for the 2-D filters).
+# Window engines of the cross-bilateral family (the per-pair arithmetic below is shared by both):
+# "tiles" (default, `_tiles.py`: blocks of pixel pairs in cache, the sums as matrix products) and
+# "offsets" (`_window.py`: one pass over the frame per window offset; the previous engine, kept as
+# the reference the tiled one is tested and benchmarked against).
+ENGINES = ("tiles", "offsets")
 
-    ``centre``: the centre pixel's arrays: ``color``, optional ``color_var``, ``feat{k}`` and the
-    precomputed per-pixel feature scales ``scale{k} = lam_k / max(psi_k^2, delta)``. ``frames``: per
-    neighbour frame, the arrays read at ``j``. ``dt_weights``: per frame, an additive log-weight
-    (``-lam_t dt^2``) or None.
+
+def _sq(a, b):
+    d = a - b
+    return d * d
+
+
+def _sq_over_var(a, b, va, vb):
+    d = a - b
+    return d * d / (va + vb + ZETA)  # Eq. 11; ZETA keeps 0/0 out where both variances are 0
+
+
+def _pair_log_weight(ci, nj, frame: int, d2, *, split: bool):
+    """``log d_ij`` of Eq. 2 with Eq. 11-12 for frame ``frame`` of the window. ``ci`` / ``nj`` map
+    names to the pixel-i / pixel-j arrays, channels on axis 0 and broadcastable against each other
+    (planar frames for the offset engine, ``(C, g, P, 1)`` / ``(C, g, 1, N)`` pair blocks for the
+    tiled one); ``d2`` is the squared pixel distance; ``split``: see `_window.sum_channels`. Returns the
+    log-weight with a leading axis of 1."""
+    lw = -ci["lam_s"] * d2
+    if f"dt{frame}" in ci:  # Sec. 5: the temporal term of a neighbour frame
+        lw = lw + ci[f"dt{frame}"]
+    if "lam_c" in ci:
+        if "color_var" in ci:  # Eq. 11 per channel
+            dist = sum_channels(_sq_over_var, (ci["color"], nj["color"], ci["color_var"], nj["color_var"]), split)
+        else:
+            dist = sum_channels(_sq, (ci["color"], nj["color"]), split)
+        lw = lw - ci["lam_c"] * clamp_dist(dist)
+    k = 0
+    while f"feat{k}" in ci:  # Eq. 12
+        lw = lw - ci[f"scale{k}"] * clamp_dist(sum_channels(_sq, (ci[f"feat{k}"], nj[f"feat{k}"]), split))
+        k += 1
+    return lw
+
+
+def cross_sums(centre: dict, frames: list[dict], *, radius: int, engine: str = "tiles"):
+    """The two sums of Eq. 1 over the window, summed over neighbour frames (one frame for the 2-D
+    filters). Returns ``(num (H, W, C), den (H, W, 1))``; ``den >= 1`` (the centre weight is 1).
+
+    ``centre``: the pixel-i arrays, HWC or scalars: ``color``, ``lam_s``, optional ``lam_c`` and
+    ``color_var``, ``feat{k}`` with the precomputed scales ``scale{k} = lam_k / max(psi_k^2,
+    delta)``, and ``dt{f}`` (``-lam_t dt^2``) for every neighbour frame ``f`` but the centre's.
+    ``frames``: per neighbour frame, the pixel-j arrays (``color``, ``color_var``, ``feat{k}``).
+    ``engine``: one of `ENGINES`.
     """
-    nfeat = sum(1 for k in centre if k.startswith("feat"))
+    if engine == "tiles":
+        return tile_sums(lambda ci, nj, f, d2: _pair_log_weight(ci, nj, f, d2, split=True)[0], centre, frames,
+                         "color", radius=radius)
+    if engine != "offsets":
+        raise FilterError(f"argument 'engine' is {engine!r}; expected one of {ENGINES}")
+    cp = {k: to_planar(v) for k, v in centre.items()}
     num = den = None
-    for frame, dt_lw in zip(frames, dt_weights):
+    for f, frame in enumerate(frames):
+        fp = {k: to_planar(v) for k, v in frame.items()}
 
-        def log_weight(nb: Neighbours, frame=frame, dt_lw=dt_lw):
-            dyf = jnp.asarray(nb.dy).astype(centre["color"].dtype)
-            dxf = jnp.asarray(nb.dx).astype(centre["color"].dtype)
-            lw = -lam["spatial"] * (dyf * dyf + dxf * dxf)
-            if dt_lw is not None:
-                lw = lw + dt_lw
-            if lam.get("color") is not None:
-                diff = centre["color"] - nb.get("color")
-                if "color_var" in centre:
-                    # Eq. 11 per channel; ZETA keeps 0/0 out where both variances are 0.
-                    dist = channel_sum(diff * diff / (centre["color_var"] + nb.get("color_var") + ZETA))
-                else:
-                    dist = channel_sum_sq(diff)
-                lw = lw - lam["color"] * clamp_dist(dist)
-            for k in range(nfeat):
-                d = centre[f"feat{k}"] - nb.get(f"feat{k}")
-                lw = lw - centre[f"scale{k}"] * clamp_dist(channel_sum_sq(d))
-            return lw
+        def log_weight(nb: Neighbours, f=f, fp=fp):
+            dyf = jnp.asarray(nb.dy).astype(cp["color"].dtype)
+            dxf = jnp.asarray(nb.dx).astype(cp["color"].dtype)
+            return _pair_log_weight(cp, {k: nb.get(k) for k in fp}, f, dyf * dyf + dxf * dxf, split=False)
 
-        n, d = window_sums(log_weight, frame, "color", radius=radius)
+        n, d = window_sums(log_weight, fp, "color", radius=radius)
         num = n if num is None else num + n
         den = d if den is None else den + d
-    return num, den
+    return from_planar(num), from_planar(den)
 
 
-def prepare_window(color, color_var, features, feature_vars, lam_spatial, lam_color, lam_features, hw, dt):
-    """Cast to ``dt``, go planar, and build the centre dict and lam dict shared by the 2-D and 3-D filters."""
-    centre = {"color": to_planar(color.astype(dt))}
-    lam = {"spatial": to_planar(lam_spatial.astype(dt))}
-    lam["color"] = None if lam_color is None else to_planar(lam_color.astype(dt))
-    if color_var is not None and lam_color is not None:
-        centre["color_var"] = to_planar(color_var.astype(dt))
+def prepare_window(color, color_var, features, feature_vars, lam_spatial, lam_color, lam_features, dt):
+    """Cast to ``dt`` and build the pixel-i dict of `cross_sums` shared by the 2-D and 3-D filters
+    (``lam_color`` None: no colour term)."""
+    centre = {"color": color.astype(dt), "lam_s": lam_spatial.astype(dt)}
+    if lam_color is not None:
+        centre["lam_c"] = lam_color.astype(dt)
+        if color_var is not None:
+            centre["color_var"] = color_var.astype(dt)
     for k, (f, v, l) in enumerate(zip(features, feature_vars, lam_features)):
-        centre[f"feat{k}"] = to_planar(f.astype(dt))
+        centre[f"feat{k}"] = f.astype(dt)
         # Eq. 12: the centre pixel's variance, floored at DELTA (which also keeps the division safe).
-        floor = jnp.asarray(DELTA, dt) if v is None else jnp.maximum(to_planar(v.astype(dt)), DELTA)
-        centre[f"scale{k}"] = to_planar(l.astype(dt)) / floor
-    return centre, lam
+        floor = jnp.asarray(DELTA, dt) if v is None else jnp.maximum(v.astype(dt), DELTA)
+        centre[f"scale{k}"] = l.astype(dt) / floor
+    return centre
+
+
+def _frame(centre: dict) -> dict:
+    """The pixel-j arrays of a 2-D filter: those of `prepare_window`'s dict that are read at j."""
+    return {k: v for k, v in centre.items() if k in ("color", "color_var") or k.startswith("feat")}
 
 
 def cross_bilateral(color, color_var, features: Sequence[Any], feature_vars: Sequence[Any],
-                    lam_spatial, lam_color, lam_features: Sequence[Any], *, radius: int) -> jax.Array:
+                    lam_spatial, lam_color, lam_features: Sequence[Any], *, radius: int,
+                    engine: str = "tiles") -> jax.Array:
     """Cross-bilateral filter, Kalantari 2015 Eq. 1-2 with the distances of Eq. 11-12 (module docstring)."""
     radius = check_radius(radius)
     col = as_image(color, "color")
@@ -217,17 +260,12 @@ def cross_bilateral(color, color_var, features: Sequence[Any], feature_vars: Seq
 
     out_dtype = col.dtype if jnp.issubdtype(col.dtype, jnp.floating) else jnp.float32
     dt = compute_dtype(col, lam_s, *feats, *lams_f, *([lam_c] if lam_c is not None else []))
-    centre, lam = prepare_window(col, cvar, feats, fvars, lam_s, lam_c, lams_f, hw, dt)
-    frame = {"color": centre["color"]}
-    if "color_var" in centre:
-        frame["color_var"] = centre["color_var"]
-    for k in range(len(feats)):
-        frame[f"feat{k}"] = centre[f"feat{k}"]
-    num, den = cross_sums(centre, [frame], lam, radius=radius, dt_weights=[None])
-    return from_planar(num / den).astype(out_dtype)  # den >= 1: the centre weight is exactly 1
+    centre = prepare_window(col, cvar, feats, fvars, lam_s, lam_c, lams_f, dt)
+    num, den = cross_sums(centre, [_frame(centre)], radius=radius, engine=engine)
+    return (num / den).astype(out_dtype)  # den >= 1: the centre weight is exactly 1
 
 
-def bilateral(image, lam_spatial, lam_range, *, radius: int) -> jax.Array:
+def bilateral(image, lam_spatial, lam_range, *, radius: int, engine: str = "tiles") -> jax.Array:
     """Plain bilateral filter (Tomasi & Manduchi 1998), the non-cross baseline (module docstring)."""
     radius = check_radius(radius)
     img = as_image(image, "image")
@@ -236,14 +274,15 @@ def bilateral(image, lam_spatial, lam_range, *, radius: int) -> jax.Array:
     lam_r = as_param(lam_range, "lam_range", hw)
     out_dtype = img.dtype if jnp.issubdtype(img.dtype, jnp.floating) else jnp.float32
     dt = compute_dtype(img, lam_s, lam_r)
-    centre, lam = prepare_window(img, None, [], [], lam_s, lam_r, [], hw, dt)
-    num, den = cross_sums(centre, [{"color": centre["color"]}], lam, radius=radius, dt_weights=[None])
-    return from_planar(num / den).astype(out_dtype)  # den >= 1 (centre weight 1)
+    centre = prepare_window(img, None, [], [], lam_s, lam_r, [], dt)
+    num, den = cross_sums(centre, [_frame(centre)], radius=radius, engine=engine)
+    return (num / den).astype(out_dtype)  # den >= 1 (centre weight 1)
 
 
 def spatiotemporal_cross_bilateral(color, color_var, features: Sequence[Any], feature_vars: Sequence[Any],
                                    lam_spatial, lam_color, lam_features: Sequence[Any], *, radius: int,
-                                   lam_temporal: Any = 0.0, center: int | None = None) -> jax.Array:
+                                   lam_temporal: Any = 0.0, center: int | None = None,
+                                   engine: str = "tiles") -> jax.Array:
     """Spatio-temporal cross-bilateral over a (T, H, W, C) volume, Kalantari 2015 Sec. 5 (module docstring)."""
     radius = check_radius(radius)
     if np.ndim(color) != 4:
@@ -271,16 +310,17 @@ def spatiotemporal_cross_bilateral(color, color_var, features: Sequence[Any], fe
 
     out_dtype = col.dtype if jnp.issubdtype(col.dtype, jnp.floating) else jnp.float32
     dt = compute_dtype(col, lam_s, lam_t, *feats, *lams_f)
-    centre, lam = prepare_window(col[center], None if cvar is None else cvar[center], [f[center] for f in feats],
-                           [None if v is None else v[center] for v in fvars], lam_s, lam_c, lams_f, hw, dt)
-    frames, dts = [], []
+    centre = prepare_window(col[center], None if cvar is None else cvar[center], [f[center] for f in feats],
+                            [None if v is None else v[center] for v in fvars], lam_s, lam_c, lams_f, dt)
+    frames = []
     for s in range(t):
-        fr = {"color": to_planar(col[s].astype(dt))}
+        fr = {"color": col[s].astype(dt)}
         if "color_var" in centre:
-            fr["color_var"] = to_planar(cvar[s].astype(dt))
+            fr["color_var"] = cvar[s].astype(dt)
         for k, f in enumerate(feats):
-            fr[f"feat{k}"] = to_planar(f[s].astype(dt))
+            fr[f"feat{k}"] = f[s].astype(dt)
         frames.append(fr)
-        dts.append(None if s == center else -to_planar(lam_t.astype(dt)) * float((s - center) ** 2))
-    num, den = cross_sums(centre, frames, lam, radius=radius, dt_weights=dts)
-    return from_planar(num / den).astype(out_dtype)  # den >= 1: centre pixel of the centre frame has weight 1
+        if s != center:
+            centre[f"dt{s}"] = -lam_t.astype(dt) * float((s - center) ** 2)
+    num, den = cross_sums(centre, frames, radius=radius, engine=engine)
+    return (num / den).astype(out_dtype)  # den >= 1: centre pixel of the centre frame has weight 1

@@ -113,10 +113,10 @@ def gaussian(image: Any, sigma: Any, *, radius: int | None = None) -> jax.Array:
         dt = compute_dtype(img, sig)
         # lambda = 1/(2 sigma^2); the floor keeps sigma = 0 finite (off-centre weights underflow to 0)
         lam = 0.5 / jnp.maximum(sig.astype(dt) ** 2, _MIN_SIGMA2)
-        centre, lams = prepare_window(img, None, [], [], lam, None, [], img.shape[:2], dt)
-        num, den = cross_sums(centre, [{"color": centre["color"]}], lams, radius=radius, dt_weights=[None])
+        centre = prepare_window(img, None, [], [], lam, None, [], dt)
+        num, den = cross_sums(centre, [{"color": centre["color"]}], radius=radius)
         out_dtype = img.dtype if jnp.issubdtype(img.dtype, jnp.floating) else jnp.float32
-        return from_planar(num / den).astype(out_dtype)  # den >= 1 (centre weight 1)
+        return (num / den).astype(out_dtype)  # den >= 1 (centre weight 1)
     out_dtype = img.dtype if jnp.issubdtype(img.dtype, jnp.floating) else jnp.float32
     dt = compute_dtype(img, jnp.asarray(sigma))
     x = img.astype(dt)

@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..arrays import compute_dtype, edge_blocks, is_concrete
+from ..arrays import compute_dtype, edge_blocks, is_concrete, median9
 from ._common import FilterError, as_image, check_radius
 
 
@@ -39,5 +39,6 @@ def remove_spikes(image, *, n_std: float = 2.0, block_radius: int = 1) -> jax.Ar
     mean = jnp.mean(stats, axis=-1)
     std = jnp.sqrt(jnp.mean((stats - mean[..., None]) ** 2, axis=-1))
     spike = jnp.any(jnp.abs(jax.lax.stop_gradient(x) - mean) > float(n_std) * std, axis=-1, keepdims=True)
-    med = jnp.median(block, axis=-1)
+    # The median by a sorting network (equal to jnp.median, which sorts and runs ~10x slower on CPU).
+    med = median9(jnp.moveaxis(block, -1, 0)) if block.shape[-1] == 9 else jnp.median(block, axis=-1)
     return jnp.where(spike, med, x).astype(out_dtype)

@@ -178,8 +178,10 @@ def prepare(buffers: Buffers, config: Config) -> dict:
             "color_var": jnp.asarray(buffers.color_var, jnp.float32), "guides": guides, "guide_vars": gvars}
 
 
-def filter_with(lam: jax.Array, prep: dict, config: Config) -> jax.Array:
-    """Run the configured filter of one frame with per-pixel lambdas ``lam`` (H, W, K+1)."""
+def filter_with(lam: jax.Array, prep: dict, config: Config, *, engine: str = "tiles") -> jax.Array:
+    """Run the configured filter of one frame with per-pixel lambdas ``lam`` (H, W, K+1).
+    ``engine`` picks the cross-bilateral's window engine (`jaxdenoise.filters.bilateral.ENGINES`:
+    the tiled default, or the per-offset one it replaced, for measurements); the NLM has one."""
     feats = [prep["guides"][f] for f in config.features]
     fvars = [prep["guide_vars"][f] for f in config.features]
     lam_f = [lam[..., 1 + k] for k in range(len(config.features))]
@@ -188,7 +190,7 @@ def filter_with(lam: jax.Array, prep: dict, config: Config) -> jax.Array:
                          radius=config.radius, patch_radius=config.patch_radius)
     lam_c = 1.0 / (2.0 * config.beta ** 2)  # fixed beta = 7 (Sec. 4.2) in the auxiliary form
     return cross_bilateral(prep["color"], prep["color_var"], feats, fvars, lam[..., 0], lam_c, lam_f,
-                           radius=config.radius)
+                           radius=config.radius, engine=engine)
 
 
 def postprocess(img: jax.Array, config: Config) -> jax.Array:

@@ -39,7 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..arrays import compute_dtype, is_concrete
+from ..arrays import block_median3x3, compute_dtype, is_concrete
 
 
 def solve_cg(*args, **kwargs):
@@ -397,23 +397,6 @@ def _l1_admm(base, dx, dy, alpha, rho, *, iters, relax):
 
 # -- L1: ADMM with a clamped-data warm start and penalty continuation ------------------------------
 
-# Devillard's 19 compare-exchanges for the median of 9 ("Fast median search: an ANSI C
-# implementation", 1998, opt_med9, after Paeth, Graphics Gems 1990): after them, slot 4 holds the median.
-_MED9 = ((1, 2), (4, 5), (7, 8), (0, 1), (3, 4), (6, 7), (1, 2), (4, 5), (7, 8), (0, 3), (5, 8), (4, 7),
-         (3, 6), (1, 4), (2, 5), (4, 7), (4, 2), (6, 4), (4, 2))
-
-
-def _median3x3(image):
-    """3x3 median of an HWC image, the border replicated (a sorting network: elementwise min/max only,
-    so it fuses and is differentiable almost everywhere)."""
-    h, w = image.shape[:2]
-    p = jnp.pad(image, ((1, 1), (1, 1), (0, 0)), mode="edge")
-    v = [p[i:i + h, j:j + w] for i in range(3) for j in range(3)]
-    for a, b in _MED9:
-        v[a], v[b] = jnp.minimum(v[a], v[b]), jnp.maximum(v[a], v[b])
-    return v[4]
-
-
 def _abs(x):
     """``|x|`` as a select: XLA's CPU backend (jax 0.10) runs a sum over ``abs(x)`` (or ``minimum``) about
     10x slower than the same sum over a select, measured at 640x360x3 (4.7 vs 0.8 ms)."""
@@ -523,7 +506,7 @@ def _l1_radmm(base, dx, dy, alpha, *, iters, relax, clamp, continuation):
         floor = 1e-6 * (jnp.mean(_abs(b_img)) + (jnp.sum(_abs(gx_t)) + jnp.sum(_abs(gy_t))) / max(n_g, 1))
         floor = floor + jnp.finfo(dt).tiny
         # -- warm start: clamp the data that both the median predictor and the L2 fit call outliers
-        med = _median3x3(b_img)
+        med = block_median3x3(b_img)
         px, py = gradient(med)
         ex, ey, eb = gx_t - px, gy_t - py, b_img - med          # ex, ey: zero on the ignored entries
         s_g = jax.lax.stop_gradient(jnp.maximum(_robust_scale((("x", ex), ("y", ey))), floor))

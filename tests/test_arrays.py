@@ -1,0 +1,41 @@
+"""jaxdenoise.arrays: the median of nine by a sorting network against NumPy's median."""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxdenoise.arrays import block_median3x3, edge_blocks, median9
+
+
+@pytest.mark.parametrize("ties", [False, True])
+def test_median9_equals_numpy_median(ties):
+    rng = np.random.default_rng(3)
+    v = rng.integers(0, 4, (9, 31)) if ties else rng.standard_normal((9, 31))
+    v = v.astype(np.float32)
+    np.testing.assert_array_equal(np.asarray(median9(jnp.asarray(v))), np.median(v, axis=0))  # exact: a selection
+
+
+def test_block_median3x3_matches_numpy_on_odd_sizes():
+    x = np.random.default_rng(8).random((7, 9, 2)).astype(np.float32)
+    p = np.pad(x, ((1, 1), (1, 1), (0, 0)), mode="edge")
+    ref = np.median(np.stack([p[i:i + 7, j:j + 9] for i in range(3) for j in range(3)]), axis=0)
+    np.testing.assert_array_equal(np.asarray(block_median3x3(jnp.asarray(x))), ref)     # exact (a selection)
+    np.testing.assert_array_equal(np.asarray(block_median3x3(jnp.asarray(x[:1, :1]))), x[:1, :1])  # 1x1: itself
+
+
+def test_median9_gradient_selects_the_median():
+    v = jnp.asarray(np.random.default_rng(1).permutation(9).astype(np.float32))
+    g = jax.grad(lambda a: median9(a))(v)
+    assert float(g[int(np.argsort(np.asarray(v))[4])]) == 1.0 and float(jnp.sum(g)) == 1.0  # tol: exact
+
+
+def test_median9_refuses_other_counts():
+    with pytest.raises(ValueError, match="9 arrays"):
+        median9([jnp.zeros(2)] * 8)
+
+
+def test_edge_blocks_median_agrees_with_block_median():
+    x = jnp.asarray(np.random.default_rng(2).random((2, 5, 6, 3)).astype(np.float32))
+    np.testing.assert_array_equal(np.asarray(median9(edge_blocks(x, 1, axis=0))), np.asarray(block_median3x3(x)))
