@@ -1,7 +1,9 @@
 """LBF run time on a 1200x800 frame (Kalantari 2015 Sec. 5: 8.4 s on a GTX TITAN, of which 5 s
 features and 3.4 s network + filter): features (prefilter + secondary features), network, filter
 (+ spike removal), each jitted separately, median of ``--runs`` calls after a warm-up; compile time
-reported separately. Peer measured in the same run: the Gaussian blur of the same frame.
+reported separately. Peers measured in the same run: the Gaussian blur of the same frame, and
+``lbf``'s filter on each cross-bilateral engine of ``--engines`` (the tiled default against the
+per-offset engine it replaced, with the largest difference between their outputs).
 
     python experiments/lbf_timing.py --frame runs/lbf_eval_data/scene_0000/spp0004_00.exr --out docs/results
 
@@ -46,15 +48,19 @@ def main() -> None:
     ap.add_argument("--height", type=int, default=800)
     ap.add_argument("--width", type=int, default=1200)
     ap.add_argument("--runs", type=int, default=5)
+    ap.add_argument("--engines", default="tiles,offsets",
+                    help="cross-bilateral window engines to time (the first is the default one)")
     ap.add_argument("--out", default="docs/results")
     args = ap.parse_args()
     b0, _ = read_buffers(args.frame)
     res = {"frame": args.frame, "height": args.height, "width": args.width, "runs": args.runs,
            "device": str(jax.devices()[0]), "cpu_count": os.cpu_count(),
-           "load_avg_start": os.getloadavg(), "command": "python " + " ".join(sys.argv), "methods": {}}
+           "load_avg_start": os.getloadavg(), "methods": {},
+           "command": ("python " + " ".join(sys.argv)).replace(str(Path.home()), "~")}  # no machine paths
     _, g = timed(lambda c: gaussian(c, 2.0, radius=6), tile(b0, args.height, args.width).color, runs=args.runs)
     res["gaussian_sigma2"] = g
     print(f"gaussian: {g['median_s']:.3f} s", flush=True)
+    outs = {}
     for name in args.methods.split(","):
         try:
             m, params = api.resolve(name)
@@ -66,12 +72,21 @@ def main() -> None:
         b = tile(b0.only(lbf.needs(cfg)), args.height, args.width)
         prep, t_feat = timed(lambda bb: lbf.prepare(bb, cfg), b, runs=args.runs)
         lam, t_net = timed(lambda p, x: lbf.filter_params(p, x, cfg), params, prep["x"], runs=args.runs)
-        _, t_filt = timed(lambda l, pr: lbf.postprocess(lbf.filter_with(l, pr, cfg), cfg), lam, prep, runs=args.runs)
-        total = t_feat["median_s"] + t_net["median_s"] + t_filt["median_s"]
-        res["methods"][name] = {"features": t_feat, "network": t_net, "filter": t_filt, "total_median": total,
-                                "ratio_to_gaussian": total / g["median_s"]}
-        print(f"{name}: features {t_feat['median_s']:.2f} s, network {t_net['median_s']:.3f} s, "
-              f"filter {t_filt['median_s']:.2f} s, total {total:.2f} s", flush=True)
+        # lbf-nlm has one engine; the cross-bilateral is timed with each engine asked for.
+        engines = ["tiles"] if cfg.filter == "nlm" else args.engines.split(",")
+        for engine in engines:
+            out, t_filt = timed(lambda l, pr: lbf.postprocess(lbf.filter_with(l, pr, cfg, engine=engine), cfg), lam,
+                                prep, runs=args.runs)
+            key = name if engine == "tiles" or cfg.filter == "nlm" else f"{name} ({engine} engine)"
+            total = t_feat["median_s"] + t_net["median_s"] + t_filt["median_s"]
+            res["methods"][key] = {"features": t_feat, "network": t_net, "filter": t_filt, "total_median": total,
+                                   "ratio_to_gaussian": total / g["median_s"], "engine": engine}
+            outs[key] = np.asarray(out)
+            print(f"{key}: features {t_feat['median_s']:.2f} s, network {t_net['median_s']:.3f} s, "
+                  f"filter {t_filt['median_s']:.2f} s, total {total:.2f} s", flush=True)
+        if len(engines) > 1:  # the engines' outputs on the same lambdas (features and network shared)
+            a, b = outs[name], outs[f"{name} ({engines[1]} engine)"]
+            res["methods"][name]["max_rel_diff_to_" + engines[1]] = float(np.max(np.abs(a - b) / (np.abs(b) + 1e-3)))
     res["load_avg_end"] = os.getloadavg()
     out = Path(args.out)
     write_json(out / "lbf_timing.json", res)
@@ -97,6 +112,23 @@ def page(res: dict) -> str:
              f"{num(res['load_avg_end'][0], '.1f')} at end).  ",
              f"Command: `{res['command']}`", "",
              "Paper (GTX TITAN GPU): 8.4 s total, 5 s features, 3.4 s network + filter (goal 8.4 s, stretch 3.4 s)."]
+    if "before" in res:  # an earlier commit's run, merged into the JSON by hand (its "note" says how)
+        b = res["before"]
+        lb = b["lbf"]
+        lines += ["", f"Before (commit {b['commit']}: {b['note']}): `lbf` features "
+                  f"{num(lb['features']['median_s'], '.2f')} s, filter + spikes {num(lb['filter']['median_s'], '.2f')} s, "
+                  f"total {num(lb['total_median'], '.2f')} s; now {num(lb['total_median'] / res['methods']['lbf']['total_median'], '.1f')}x "
+                  f"faster in total, the filter {num(lb['filter']['median_s'] / res['methods']['lbf']['filter']['median_s'], '.1f')}x, "
+                  f"the features {num(lb['features']['median_s'] / res['methods']['lbf']['features']['median_s'], '.1f')}x."]
+    for name, r in res["methods"].items():
+        for key, val in r.items():
+            if key.startswith("max_rel_diff_to_"):
+                other = key[len("max_rel_diff_to_"):]
+                peer = res["methods"][f"{name} ({other} engine)"]
+                lines += ["", f"{name}'s cross-bilateral on the {r['engine']} engine against the {other} engine in the "
+                          f"same run: filter + spikes {num(peer['filter']['median_s'] / r['filter']['median_s'], '.1f')}x "
+                          f"faster; outputs on the same lambdas within a relative difference of {num(val, '.1e')} "
+                          "(|a - b| / (|b| + 1e-3), max over pixels)."]
     return "\n".join(lines) + "\n"
 
 
