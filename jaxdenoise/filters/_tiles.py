@@ -14,8 +14,8 @@ the window is one entry of a ``(P, N)`` matrix. For a group of ``g`` tiles the e
 4. forms both sums of Eq. 1 as one matrix product with the neighbours' ``[value * valid, valid]``
    (``valid`` is 1 inside the image, 0 in the padding, so outside neighbours get weight 0).
 
-A group's arrays are about `GROUP_PAIRS` pairs (8 MB a float32 array), so they stay in the
-last-level cache, and the per-pair work is one fused element-wise pass: the offset engine spent
+A group's arrays are about `GROUP_PAIRS` pairs per frame (8 MB a float32 array), so they stay in
+the last-level cache, and the per-pair work is one fused element-wise pass: the offset engine spent
 most of its time re-reading every feature plane from memory once per offset (about 180 bytes
 per pixel-offset) and on XLA fusions that recompute the weight per consumer. The cost is the
 pairs outside the window inside a tile's block: ``((t + 2r) / (2r + 1))^2``, 1.27x for LBF's
@@ -109,7 +109,10 @@ def tile_sums(
     inwin = jnp.asarray(((np.abs(dy) <= r) & (np.abs(dx) <= r)).astype(np.float64), dt)
 
     ntile = nty * ntx
-    g = int(max(1, min(ntile, GROUP_PAIRS // (p_n * n_n * nf))))
+    # Tiles per group: GROUP_PAIRS pairs per frame (the frames are summed one after the other inside
+    # a group), and at least 2: a group of one tile ran 5x slower on XLA's CPU backend (measured at
+    # 96x240, r = 27, and for LBF's 7-frame filter at 128x128, 4.9 s against 0.88 s with 4 tiles).
+    g = int(max(min(2, ntile), min(ntile, GROUP_PAIRS // (p_n * n_n))))
     ngroup = -(-ntile // g)
     ctiles = {k: jnp.pad(v, ((0, ngroup * g - ntile), (0, 0), (0, 0))).reshape(ngroup, g, p_n, v.shape[-1])
               for k, v in ctiles.items()}
