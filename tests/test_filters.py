@@ -140,17 +140,22 @@ def ref_prefilter(f, v, r, pr, lam):
 
 
 def ref_gaussian(c, sigma, r):
+    """The normalized Gaussian window sum in float64, one NumPy pass per window offset (the equation
+    summed offset by offset over every pixel whose neighbour is inside the image; vectorized over
+    pixels only, so the 40x150 r = 12 case takes well under a second instead of ~15 s)."""
     h, w = c.shape[:2]
-    out = np.zeros(c.shape)
-    for i in range(h):
-        for j in range(w):
-            num, den = 0.0, 0.0
-            for y in range(max(0, i - r), min(h, i + r + 1)):
-                for x in range(max(0, j - r), min(w, j + r + 1)):
-                    wgt = np.exp(-((y - i) ** 2 + (x - j) ** 2) / (2 * sigma ** 2))
-                    num, den = num + wgt * c[y, x], den + wgt
-            out[i, j] = num / den
-    return out
+    c = np.asarray(c, np.float64)
+    num, den = np.zeros(c.shape), np.zeros(c.shape[:2] + (1,))
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            if abs(dy) >= h or abs(dx) >= w:  # no pixel has this neighbour inside the image
+                continue
+            wgt = np.exp(-(dy ** 2 + dx ** 2) / (2 * sigma ** 2))
+            yi, xi = slice(max(0, -dy), min(h, h - dy)), slice(max(0, -dx), min(w, w - dx))
+            yj, xj = slice(max(0, dy), min(h, h + dy)), slice(max(0, dx), min(w, w + dx))
+            num[yi, xi] += wgt * c[yj, xj]
+            den[yi, xi] += wgt
+    return num / den
 
 
 def ref_spikes(c, n_std):
