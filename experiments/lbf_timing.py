@@ -53,10 +53,11 @@ def main() -> None:
     ap.add_argument("--out", default="docs/results")
     args = ap.parse_args()
     b0, _ = read_buffers(args.frame)
-    res = {"frame": args.frame, "height": args.height, "width": args.width, "runs": args.runs,
+    home = lambda t: t.replace(str(Path.home()), "~")  # no machine paths in committed results
+    res = {"frame": home(args.frame), "height": args.height, "width": args.width, "runs": args.runs,
            "device": str(jax.devices()[0]), "cpu_count": os.cpu_count(),
            "load_avg_start": os.getloadavg(), "methods": {},
-           "command": ("python " + " ".join(sys.argv)).replace(str(Path.home()), "~")}  # no machine paths
+           "command": home("python " + " ".join(sys.argv))}
     _, g = timed(lambda c: gaussian(c, 2.0, radius=6), tile(b0, args.height, args.width).color, runs=args.runs)
     res["gaussian_sigma2"] = g
     print(f"gaussian: {g['median_s']:.3f} s", flush=True)
