@@ -41,10 +41,16 @@ def edge_blocks(x: jax.Array, r: int, *, axis: int = -1) -> jax.Array:
     the centre pixel at ``k = 2r (r+1)``); outside pixels are edge-replicated (`pad_edge`). This
     materializes the whole stack: for small blocks only (module docstring).
     """
+    return jnp.stack(edge_views(x, r), axis=axis)
+
+
+def edge_views(x: jax.Array, r: int) -> list[jax.Array]:
+    """The ``(2r+1)^2`` shifted views of `edge_blocks`, in its order, as a list (nothing stacked:
+    block statistics over the views fuse into one elementwise pass, where XLA's CPU backend ran the
+    stacked form about 10x slower for LBF's 3x3 mean deviation at 1200x800)."""
     h, w = x.shape[-3], x.shape[-2]
     p = pad_edge(x, r)
-    out = [p[..., dy:dy + h, dx:dx + w, :] for dy in range(2 * r + 1) for dx in range(2 * r + 1)]
-    return jnp.stack(out, axis=axis)
+    return [p[..., dy:dy + h, dx:dx + w, :] for dy in range(2 * r + 1) for dx in range(2 * r + 1)]
 
 
 # Devillard's 19 compare-exchanges for the median of 9 ("Fast median search: an ANSI C
@@ -68,11 +74,3 @@ def median9(values) -> jax.Array:
     for a, b in _MED9:
         v[a], v[b] = jnp.minimum(v[a], v[b]), jnp.maximum(v[a], v[b])
     return v[4]
-
-
-def block_median3x3(x: jax.Array) -> jax.Array:
-    """Median of the edge-replicated 3x3 block around every pixel of an ``(..., H, W, C)`` array
-    (`median9` over the nine shifted views; nothing is stacked)."""
-    h, w = x.shape[-3], x.shape[-2]
-    p = pad_edge(x, 1)
-    return median9(p[..., dy:dy + h, dx:dx + w, :] for dy in range(3) for dx in range(3))

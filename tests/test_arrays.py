@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxdenoise.arrays import block_median3x3, edge_blocks, median9
+from jaxdenoise.arrays import edge_blocks, edge_views, median9
 
 
 @pytest.mark.parametrize("ties", [False, True])
@@ -17,12 +17,12 @@ def test_median9_equals_numpy_median(ties):
     np.testing.assert_array_equal(np.asarray(median9(jnp.asarray(v))), np.median(v, axis=0))  # exact: a selection
 
 
-def test_block_median3x3_matches_numpy_on_odd_sizes():
+def test_median_of_the_edge_views_matches_numpy_on_odd_sizes():
     x = np.random.default_rng(8).random((7, 9, 2)).astype(np.float32)
     p = np.pad(x, ((1, 1), (1, 1), (0, 0)), mode="edge")
     ref = np.median(np.stack([p[i:i + 7, j:j + 9] for i in range(3) for j in range(3)]), axis=0)
-    np.testing.assert_array_equal(np.asarray(block_median3x3(jnp.asarray(x))), ref)     # exact (a selection)
-    np.testing.assert_array_equal(np.asarray(block_median3x3(jnp.asarray(x[:1, :1]))), x[:1, :1])  # 1x1: itself
+    np.testing.assert_array_equal(np.asarray(median9(edge_views(jnp.asarray(x), 1))), ref)     # exact (a selection)
+    np.testing.assert_array_equal(np.asarray(median9(edge_views(jnp.asarray(x[:1, :1]), 1))), x[:1, :1])  # 1x1: itself
 
 
 def test_median9_gradient_selects_the_median():
@@ -36,6 +36,6 @@ def test_median9_refuses_other_counts():
         median9([jnp.zeros(2)] * 8)
 
 
-def test_edge_blocks_median_agrees_with_block_median():
+def test_edge_blocks_stack_the_edge_views():
     x = jnp.asarray(np.random.default_rng(2).random((2, 5, 6, 3)).astype(np.float32))
-    np.testing.assert_array_equal(np.asarray(median9(edge_blocks(x, 1, axis=0))), np.asarray(block_median3x3(x)))
+    np.testing.assert_array_equal(np.asarray(edge_blocks(x, 1, axis=0)), np.stack(edge_views(x, 1)))

@@ -59,7 +59,6 @@ def tile_sums(
     value: str,
     *,
     radius: int,
-    tile: int | None = None,
 ) -> tuple[jax.Array, jax.Array]:
     """``(sum_j d_ij v_j, sum_j d_ij)`` over the ``(2r+1)^2`` window of every pixel, summed over
     ``frames`` (module docstring); returns ``(H, W, C_v)`` and ``(H, W, 1)``.
@@ -75,7 +74,7 @@ def tile_sums(
     h, w = any_v.shape[:2]
     dt = any_v.dtype
     r = int(radius)
-    t = tile_size(r) if tile is None else int(tile)
+    t = tile_size(r)
     nty, ntx = -(-h // t), -(-w // t)
     hc, wc = nty * t, ntx * t
     nh, nw = t + 2 * r, t + 2 * r

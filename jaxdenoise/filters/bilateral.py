@@ -41,7 +41,8 @@ pairs in cache, memory O(H W C) plus one group of pairs) or ``"offsets"`` (``_wi
 sums over the window offsets, O(H W C)); both evaluate the same per-pair log-weight and agree to
 float32 rounding (docs/methods/bilateral.md). Shared behaviour: neighbours outside the image (or
 outside the frame range) get weight 0; the centre weight is exactly 1, so when all other weights
-underflow the output is the centre pixel (documented fallback, never NaN). A feature that is constant over the frame (checked on concrete inputs, i.e.
+underflow the output is the centre pixel (documented fallback, never NaN). A feature that is
+constant over the frame (checked on concrete inputs, i.e.
 outside ``jit``) contributes a distance of exactly 0, so its term is dropped before tracing: the
 output is bit-identical and the filter does less work. Under ``jit`` the check cannot see values and
 the term is computed (same result); call `drop_constant_features` before ``jit`` to get the saving.
@@ -165,9 +166,11 @@ def _sq(a, b):
     return d * d
 
 
-def _sq_over_var(a, b, va, vb):
+def sq_over_var(a, b, va, vb):
+    """``(a - b)^2 / (va + vb + zeta)``: one channel of Eq. 11 (and of NLM's Eq. 17); ZETA keeps 0/0
+    out where both variances are 0."""
     d = a - b
-    return d * d / (va + vb + ZETA)  # Eq. 11; ZETA keeps 0/0 out where both variances are 0
+    return d * d / (va + vb + ZETA)
 
 
 def _pair_log_weight(ci, nj, frame: int, d2, *, split: bool):
@@ -181,7 +184,7 @@ def _pair_log_weight(ci, nj, frame: int, d2, *, split: bool):
         lw = lw + ci[f"dt{frame}"]
     if "lam_c" in ci:
         if "color_var" in ci:  # Eq. 11 per channel
-            dist = sum_channels(_sq_over_var, (ci["color"], nj["color"], ci["color_var"], nj["color_var"]), split)
+            dist = sum_channels(sq_over_var, (ci["color"], nj["color"], ci["color_var"], nj["color_var"]), split)
         else:
             dist = sum_channels(_sq, (ci["color"], nj["color"]), split)
         lw = lw - ci["lam_c"] * clamp_dist(dist)

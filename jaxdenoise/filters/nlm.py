@@ -39,7 +39,7 @@ import jax.numpy as jnp
 from ..arrays import compute_dtype
 from ._common import FilterError, as_image, as_param, check_radius
 from ._window import Neighbours, channel_sum_sq, clamp_dist, from_planar, sum_channels, to_planar, window_sums
-from .bilateral import DELTA, ZETA, check_color_var, feature_inputs, var_map
+from .bilateral import DELTA, ZETA, check_color_var, feature_inputs, sq_over_var, var_map
 
 
 def _box(x: jax.Array, r: int, h: int, w: int) -> jax.Array:
@@ -62,11 +62,6 @@ def _pair_count(n: int, offset, pr: int, dtype) -> jax.Array:
     return jnp.maximum(hi - lo + 1, 0).astype(dtype)
 
 
-def _term(ci, cj, vi, vj):
-    diff = ci - cj
-    return diff * diff / (vi + vj + ZETA)  # ZETA keeps 0/0 out where both variances are 0 (Eq. 17)
-
-
 def _cancelled_term(ci, cj, vi, vj):
     diff = ci - cj
     return (diff * diff - (vi + jnp.minimum(vi, vj))) / (vi + vj + ZETA)
@@ -83,7 +78,7 @@ def _patch_distance(nb: Neighbours, centre: dict, pr: int, h: int, w: int, *, ca
         # Rousselle et al.: subtract the expected squared difference due to noise.
         d = sum_channels(_cancelled_term, (ci, cj, vi, vj)) * (1.0 / ci.shape[0])
     else:
-        d = sum_channels(_term, (ci, cj, vi, vj))
+        d = sum_channels(sq_over_var, (ci, cj, vi, vj))  # Eq. 17
     # |Q|, the number of patch offsets with both i + o and j + o inside, is separable: a row count
     # times a column count (`_pair_count`), exactly the box sum of ``pair`` without its second box
     # filter per offset (1.4x faster prefilter, bit-identical). count >= 1 wherever j is inside the

@@ -30,7 +30,7 @@ from typing import Mapping, Sequence
 import jax
 import jax.numpy as jnp
 
-from ..arrays import edge_blocks, median9, pad_edge
+from ..arrays import edge_views, median9, pad_edge
 from ..errors import JaxdenoiseError
 
 __all__ = ["PAPER_FEATURES", "CATEGORIES", "feature_names", "feature_categories", "secondary_features", "num_features",
@@ -102,24 +102,18 @@ def sobel_magnitude(x: jax.Array) -> jax.Array:
 
 def mean_deviation(x: jax.Array, *, size: int = BLOCK_DEV) -> jax.Array:
     """Mean over a block of ``|f_j - block mean|`` (Sec. 3.3, after Hachisuka et al. 2008)."""
-    # Over the shifted views one by one, not a stacked block: XLA's CPU backend ran the stacked
-    # (9, H, W, C) form 0.29 s for a 1200x800x3 feature, the views ~10x faster.
-    h, w = x.shape[-3], x.shape[-2]
-    r = size // 2
-    p = pad_edge(x, r)
-    views = [p[..., dy:dy + h, dx:dx + w, :] for dy in range(size) for dx in range(size)]
+    views = edge_views(x, size // 2)  # not stacked (arrays.edge_views)
     mean = sum(views) / len(views)
     return sum(jnp.abs(v - mean) for v in views) / len(views)
 
 
 def median_abs_deviation(x: jax.Array, *, size: int = BLOCK_DEV) -> jax.Array:
     """Median over a block of ``|f_j - block median|`` (Sec. 3.3, after Kalantari and Sen 2013)."""
-    r = size // 2
-    sh = edge_blocks(x, r, axis=0)
-    if sh.shape[0] == 9:  # the 3x3 block: a sorting network, equal to jnp.median (arrays.median9)
-        views = list(sh)
+    views = edge_views(x, size // 2)
+    if len(views) == 9:  # the 3x3 block: a sorting network, equal to jnp.median (arrays.median9)
         med = median9(views)
         return median9(jnp.abs(v - med) for v in views)
+    sh = jnp.stack(views)
     return jnp.median(jnp.abs(sh - jnp.median(sh, axis=0)), axis=0)
 
 

@@ -39,7 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..arrays import block_median3x3, compute_dtype, is_concrete
+from ..arrays import compute_dtype, edge_views, is_concrete, median9
 
 
 def solve_cg(*args, **kwargs):
@@ -506,7 +506,7 @@ def _l1_radmm(base, dx, dy, alpha, *, iters, relax, clamp, continuation):
         floor = 1e-6 * (jnp.mean(_abs(b_img)) + (jnp.sum(_abs(gx_t)) + jnp.sum(_abs(gy_t))) / max(n_g, 1))
         floor = floor + jnp.finfo(dt).tiny
         # -- warm start: clamp the data that both the median predictor and the L2 fit call outliers
-        med = block_median3x3(b_img)
+        med = median9(edge_views(b_img, 1))  # 3x3 median, border replicated
         px, py = gradient(med)
         ex, ey, eb = gx_t - px, gy_t - py, b_img - med          # ex, ey: zero on the ignored entries
         s_g = jax.lax.stop_gradient(jnp.maximum(_robust_scale((("x", ex), ("y", ey))), floor))
