@@ -66,6 +66,15 @@ def main(argv: list[str] | None = None) -> int:
                    help="film height (default: the scene's own; 'default': the width; see --width)")
     r.add_argument("--frames", type=int, default=0,
                    help="render a camera fly-through of N frames instead (default: 0, one still shot)")
+    r.add_argument("--adaptive", default=None, metavar="METHOD[:ESTIMATOR]",
+                   help="sample adaptively: a uniform pilot, then --passes passes whose per-pixel counts follow a "
+                        "map of the estimated error: 'relvar' (relative variance of the pixel mean), METHOD or "
+                        "METHOD:halves (METHOD's error from two denoised half-buffers), METHOD:relvar (relative "
+                        "variance over the METHOD-denoised frame); the frame gets an 'spp' layer (default: none, "
+                        "uniform sampling)")
+    r.add_argument("--passes", type=int, default=1, help="adaptive passes after the pilot (default: 1)")
+    r.add_argument("--initial-spp", type=int, default=None,
+                   help="spp of the uniform pilot (default: a quarter of --spp, at least 2)")
     common(r)
     d = sub.add_parser("dataset", help="render procedural scenes, or a split of the scene library, into "
                                        "DIR/scene_XXXX + manifest.json")
@@ -124,6 +133,8 @@ def _run(a: argparse.Namespace, argv: list[str]) -> int:
             name = library.resolve(scene)  # library:NAME or the path of a library XML (unknown names raise)
             if name is not None:
                 a.width, a.height = library.film_size(name, a.width, a.height)
+        if a.frames and a.adaptive:
+            raise JaxdenoiseError("--adaptive renders still shots; drop --frames (or --adaptive)")
         if a.frames:
             rec = render_sequence(scene, a.out, n_frames=a.frames, spp=a.spp, instances=a.instances,
                                   ref_spp=a.ref_spp, seed=a.seed, buffers=_names(a.buffers),
@@ -138,7 +149,8 @@ def _run(a: argparse.Namespace, argv: list[str]) -> int:
         rec = render_shot(scene, a.out, spp=a.spp, ref_spp=a.ref_spp, instances=a.instances,
                           methods=_names(a.methods), buffers=_names(a.buffers), max_depth=a.max_depth,
                           seed=a.seed, progress=not a.no_progress, width=a.width, height=a.height,
-                          shift=a.shift, primal=a.primal)
+                          shift=a.shift, primal=a.primal, adaptive=a.adaptive, passes=a.passes,
+                          initial_spp=a.initial_spp)
         rec["command"] = command
         ref = rec.get("reference") or {}
         noise = f", reference RelMSE(halves) {ref['relmse_halves']:.2e}" if ref else ""

@@ -271,6 +271,7 @@ def trace(scene, sampler, ray, active, *, settings: PathSettings, record: frozen
             state = body(state)
     out = {"color": state["L"]}
     out.update(state["feats"])
+    out["vertices"] = Float(state["depth"])   # path vertices traced: a sample's cost (adaptive sampling)
     return out
 
 

@@ -6,7 +6,7 @@ is bounded by ``samples_per_pass`` whatever the sample count (the references use
 """
 from __future__ import annotations
 
-from typing import Callable, Iterable
+from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
@@ -15,6 +15,7 @@ from .mitsuba_setup import is_vectorized
 from jaxdenoise.errors import JaxdenoiseError
 
 DEFAULT_SAMPLES_PER_PASS = 1 << 20
+VERTICES = "vertices"  # `render_counts(vertices=True)`: the path vertices a pixel's samples traced (their cost)
 
 
 def film_size(scene) -> tuple[int, int]:
@@ -56,18 +57,16 @@ def camera_matrices(scene) -> dict:
 
 
 def _channels(name: str) -> int:
-    return 3 if name == "color" else FEATURE_DIMS[name]
+    return 3 if name == "color" else 1 if name == VERTICES else FEATURE_DIMS[name]
 
 
-def _sample_wavefront(scene, sensor, sampler, npix: int, n: int, width: int):
-    """Camera rays for ``n`` samples of each of ``npix`` pixels (box filter: uniform in the pixel)."""
+def _sample_wavefront(scene, sensor, sampler, idx, width: int):
+    """Camera rays for the samples of a wavefront, ``idx`` holding each sample's pixel (row-major over
+    the film crop; box filter: uniform in the pixel)."""
     import drjit as dr
     import mitsuba as mi
 
     film = sensor.film()
-    idx = dr.arange(mi.UInt32, npix * n)
-    if n > 1:
-        idx = idx // dr.opaque(mi.UInt32, n)
     pos = mi.Vector2i()
     pos.y = mi.Int32(idx // dr.opaque(mi.UInt32, width))
     pos.x = mi.Int32(idx) - pos.y * width
@@ -115,10 +114,7 @@ def render_moments(scene, *, spp: int, seed: int, settings: PathSettings, record
 
     if not isinstance(spp, (int, np.integer)) or spp < 1:
         raise JaxdenoiseError(f"spp must be an int >= 1, got {spp!r}")
-    record = frozenset(record)
-    unknown = record - set(FEATURES)
-    if unknown:
-        raise JaxdenoiseError(f"record: unknown feature(s) {sorted(unknown)}; known: {list(FEATURES)}")
+    record = _check_record(record)
     names = ["color"] + [f for f in FEATURES if f in record]
     width, height = film_size(scene)
     npix = width * height
@@ -135,7 +131,10 @@ def render_moments(scene, *, spp: int, seed: int, settings: PathSettings, record
         while done < spp:
             n = min(per_pass, spp - done)
             sampler.seed(dr.opaque(mi.UInt32, derive_seed(seed, "pass", k)), npix * n)
-            ray, weight = _sample_wavefront(scene, sensor, sampler, npix, n, width)
+            idx = dr.arange(mi.UInt32, npix * n)
+            if n > 1:
+                idx = idx // dr.opaque(mi.UInt32, n)
+            ray, weight = _sample_wavefront(scene, sensor, sampler, idx, width)
             out = trace(scene, sampler, ray, True, settings=settings, record=record, roughness=rough)
             out["color"] = out["color"] * weight
             comps = []
@@ -161,8 +160,136 @@ def render_moments(scene, *, spp: int, seed: int, settings: PathSettings, record
     return {k: (v[0].reshape(height, width, -1), v[1].reshape(height, width, -1)) for k, v in acc.items()}
 
 
-def _render_scalar(scene, sensor, spp, seed, settings, record, rough, acc, width, on_pass) -> None:
-    """The same estimator one sample at a time, for the ``scalar_rgb`` fallback (slow: tiny images only)."""
+def _check_record(record: Iterable[str]) -> frozenset[str]:
+    record = frozenset(record)
+    unknown = record - set(FEATURES)
+    if unknown:
+        raise JaxdenoiseError(f"record: unknown feature(s) {sorted(unknown)}; known: {list(FEATURES)}")
+    return record
+
+
+def render_counts(scene, *, parts: Sequence[np.ndarray], seed: int, settings: PathSettings,
+                  record: Iterable[str] = (), samples_per_pass: int = DEFAULT_SAMPLES_PER_PASS,
+                  vertices: bool = False,
+                  on_pass: Callable[[float], None] | None = None) -> list[dict[str, tuple[np.ndarray, np.ndarray]]]:
+    """Per-pixel sample counts (adaptive sampling, `data_gen.adaptive`): pixel ``p`` gets
+    ``sum_q parts[q][p]`` samples, the first ``parts[0][p]`` of them summed into the first result, the
+    next ``parts[1][p]`` into the second, and so on (independent samples: two parts are two
+    independent half-buffers). Returns one ``{name: (sum, sumsq)}`` per part, as `render_moments`.
+
+    ``parts``: (H, W) arrays of non-negative integers. The counts are fixed before the call, so each
+    part's per-pixel sums give an unbiased mean. ``vertices``: each result also sums ``"vertices"``,
+    the path vertices the samples traced (one channel: the cost of a pixel's samples).
+    ``on_pass(k)``: after each wavefront, with the samples it added per pixel on average.
+
+    Vectorized variants trace wavefronts of at most ``samples_per_pass`` samples (at least one
+    pixel's), cut at pixel boundaries, each pixel's samples contiguous and drawn as `render_moments`
+    draws them (one part of ``spp`` samples everywhere gives its samples when the frame fits one
+    wavefront); the per-pixel sums are accumulated on the device (`_segment_sums`), so only
+    per-pixel sums come back.
+    """
+    record = _check_record(record)
+    names = ["color"] + [f for f in FEATURES if f in record] + ([VERTICES] if vertices else [])
+    width, height = film_size(scene)
+    npix = width * height
+    parts = [check_counts(c, height, width).reshape(-1) for c in parts]
+    if not parts:
+        raise JaxdenoiseError("render_counts: 'parts' is empty; expected at least one (H, W) count array")
+    accs = [{k: (np.zeros((npix, _channels(k))), np.zeros((npix, _channels(k)))) for k in names} for _ in parts]
+    sensor = scene.sensors()[0]
+    rough = RoughnessLookup(scene) if "roughness" in record else None
+    if not is_vectorized():
+        for q, c in enumerate(parts):
+            _render_scalar(scene, sensor, 0, derive_seed(seed, "part", q), settings, record, rough, accs[q], width,
+                           on_pass, c)
+    else:
+        _render_parts(scene, sensor, parts, seed, settings, record, rough, accs, names, width, samples_per_pass,
+                      on_pass)
+    return [{k: (v[0].reshape(height, width, -1), v[1].reshape(height, width, -1)) for k, v in acc.items()}
+            for acc in accs]
+
+
+def check_counts(counts, height: int, width: int) -> np.ndarray:
+    """Per-pixel sample counts as int64 (H, W), refused with a clear error unless they are finite
+    non-negative integers on the film's pixel grid."""
+    c = np.asarray(counts)
+    if c.shape != (height, width):
+        raise JaxdenoiseError(f"counts: shape {c.shape}; expected the film's ({height}, {width})")
+    if c.size and (not np.all(np.isfinite(c)) or np.any(c < 0) or np.any(c != np.round(c))):
+        raise JaxdenoiseError("counts: expected non-negative integers (samples per pixel)")
+    return c.astype(np.int64)
+
+
+def _render_parts(scene, sensor, parts, seed, settings, record, rough, accs, names, width, samples_per_pass,
+                  on_pass) -> None:
+    import drjit as dr
+    import mitsuba as mi
+
+    counts = sum(parts)
+    npix = counts.size
+    cum = np.cumsum(counts)
+    sampler = mi.load_dict({"type": "independent"})
+    start, k = 0, 0
+    while start < npix:
+        before = int(cum[start - 1]) if start else 0
+        end = max(start + 1, int(np.searchsorted(cum, before + samples_per_pass, side="right")))
+        c = counts[start:end]
+        n = int(c.sum())
+        if n:
+            sampler.seed(dr.opaque(mi.UInt32, derive_seed(seed, "pass", k)), n)   # render_moments' streams
+            pix = np.repeat(np.arange(start, end, dtype=np.uint32), c)
+            ray, weight = _sample_wavefront(scene, sensor, sampler, mi.UInt32(pix), width)
+            out = trace(scene, sampler, ray, True, settings=settings, record=record, roughness=rough)
+            out["color"] = out["color"] * weight
+            comps = []
+            for name in names:
+                v = out[name]
+                comps.extend([v[i] for i in range(3)] if _channels(name) == 3 else [v])
+            dr.eval(*comps)                      # one launch traces the wavefront for every component
+            # each part's range [b_q, b_{q+1}) of a pixel's samples; b_0 = the pixel's first sample
+            bounds = [np.cumsum(c) - c]
+            for part in parts:
+                bounds.append(bounds[-1] + part[start:end])
+            res = [_segment_sums(comps, bounds[q], bounds[q + 1]) for q in range(len(parts))]
+            for q, acc in enumerate(accs):
+                arr = [(np.asarray(a, np.float64), np.asarray(b, np.float64)) for a, b in res[q]]
+                i = 0
+                for name in names:
+                    ch = _channels(name)
+                    acc[name][0][start:end] += np.stack([a for a, _ in arr[i:i + ch]], -1)
+                    acc[name][1][start:end] += np.stack([b for _, b in arr[i:i + ch]], -1)
+                    i += ch
+            del out, comps, res
+            k += 1
+        if on_pass is not None:
+            on_pass(n / npix)
+        start = end
+
+
+def _segment_sums(comps, begin: np.ndarray, end: np.ndarray) -> list:
+    """Per pixel, ``(sum, sum of squares)`` of each evaluated per-sample array in ``comps`` over the
+    pixel's samples ``[begin, end)``: one symbolic Dr.Jit loop, a lane per pixel walking its own
+    samples by gathers, accumulating in float64 (deterministic and free of the cancellation a
+    prefix-sum difference suffers next to a firefly). Returns float64 NumPy pairs, in ``comps`` order."""
+    import drjit as dr
+    import mitsuba as mi
+
+    first, stop = mi.UInt32(begin.astype(np.uint32)), mi.UInt32(end.astype(np.uint32))
+    zeros = [mi.Float64(dr.zeros(mi.Float64, len(begin))) for _ in comps]
+
+    def body(j, s, s2):
+        vs = [mi.Float64(dr.gather(mi.Float, c, j)) for c in comps]
+        return j + 1, [a + v for a, v in zip(s, vs)], [a + v * v for a, v in zip(s2, vs)]
+
+    _, s, s2 = dr.while_loop((first, zeros, [mi.Float64(z) for z in zeros]), lambda j, s, s2: j < stop, body,
+                             label="data_gen.segment_sums")
+    dr.eval(s, s2)
+    return [(np.asarray(a, np.float64), np.asarray(b, np.float64)) for a, b in zip(s, s2)]
+
+
+def _render_scalar(scene, sensor, spp, seed, settings, record, rough, acc, width, on_pass, counts=None) -> None:
+    """The same estimator one sample at a time, for the ``scalar_rgb`` fallback (slow: tiny images only);
+    ``counts`` (flat, per pixel) replaces ``spp`` where given."""
     import mitsuba as mi
 
     film = sensor.film()
@@ -173,7 +300,7 @@ def _render_scalar(scene, sensor, spp, seed, settings, record, rough, acc, width
     for p in range(npix):
         sampler.seed(derive_seed(seed, "pixel", p), 1)
         y, x = divmod(p, width)
-        for _ in range(spp):
+        for _ in range(spp if counts is None else int(counts[p])):
             u = sampler.next_2d()
             pos = mi.ScalarVector2f((x + off[0] + u[0] - off[0]) / size[0], (y + off[1] + u[1] - off[1]) / size[1])
             aperture = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Point2f(0.5)
@@ -188,7 +315,7 @@ def _render_scalar(scene, sensor, spp, seed, settings, record, rough, acc, width
                 s[p] += v
                 q[p] += v * v
         if on_pass is not None and p == npix - 1:
-            on_pass(spp)
+            on_pass(spp if counts is None else float(np.mean(counts)))
 
 
 def moments_to_buffers(moments: dict, spp: int) -> dict[str, np.ndarray]:

@@ -21,6 +21,7 @@ from .integrator import FEATURES, PathSettings, derive_seed
 from .mitsuba_setup import RenderTimer
 from .render import DEFAULT_SAMPLES_PER_PASS, camera_matrices, film_size, render_buffers, render_reference
 from .scenes import describe, load_scene
+from jaxdenoise.buffers import SAMPLE_COUNT_FIELD
 from jaxdenoise.errors import JaxdenoiseError
 
 GRADIENT_FIELDS = ("dx", "dy")
@@ -76,7 +77,8 @@ def plan_buffers(desc: dict, settings: PathSettings, requested: frozenset[str] |
         invariant["visibility"] = f"max_depth={settings.max_depth} < 2: no shadow rays"
     if len(desc["roughness_values"]) <= 1:
         invariant["roughness"] = f"every BSDF has the same roughness {desc['roughness_values']}: a constant buffer"
-    candidates = [f for f in IMAGE_FIELDS]
+    # the per-pixel sample count is written by adaptive renders only (`data_gen.adaptive`)
+    candidates = [f for f in IMAGE_FIELDS if f != SAMPLE_COUNT_FIELD]
     left: dict[str, str] = {}
     fields: list[str] = []
     for f in candidates:
@@ -158,7 +160,8 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
                 max_depth: int = 8, rr_depth: int = 5, seed: int = 0, progress: bool = True,
                 samples_per_pass: int = DEFAULT_SAMPLES_PER_PASS, width: int | None = None,
                 height: int | None = None, shift: str | None = None, primal: str = "base",
-                label: str | None = None, _stop_after: int | None = None) -> dict:
+                label: str | None = None, adaptive: str | None = None, passes: int = 1,
+                initial_spp: int | None = None, _stop_after: int | None = None) -> dict:
     """Render noisy frames at every ``spp`` (``instances`` independent realizations each) and a
     ``ref_spp`` reference into ``out_dir``; return the shot's manifest record (also in ``shot.json``).
 
@@ -170,6 +173,9 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
     gradient buffers (`data_gen.gradient.render_gradients`). ``label``: the scene's name in the record
     and the resume keys (default: the XML path as given, a dict's ``__name__``, ``library:<name>@<digest>``
     for a library scene, ``mitsuba.Scene`` for a loaded scene).
+    ``adaptive`` (`data_gen.adaptive.parse_spec`: ``relvar``, ``METHOD``, ``METHOD:relvar|halves``)
+    renders every noisy frame adaptively: an ``initial_spp`` uniform pilot, then ``passes`` passes
+    whose per-pixel counts follow the map; the frame gets the ``spp`` layer (`data_gen.adaptive`).
     """
     from jaxdenoise.buffers import Buffers
     from jaxdenoise.fsutil import remove_stale_temporaries, write_json
@@ -187,6 +193,7 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
     shift = _check_shift(shift, primal)
     settings = PathSettings(max_depth=int(max_depth), rr_depth=int(rr_depth))
     label = _scene_label(scene) if label is None else str(label)
+    spec = _check_adaptive(adaptive, spp, passes, initial_spp)
     loaded = load_scene(scene, width=width, height=height)
     desc = describe(loaded)
     w, h = film_size(loaded)
@@ -205,10 +212,16 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
         fields, left = plan_buffers(desc, settings, requested, s)
         left_out[f"spp{s}"] = left
         for i in range(instances):
-            name = f"spp{s:04d}_{i:02d}.exr"
+            name = noisy_name(s, i, spec)
             key = dict(base_key, spp=s, instance=i, fields=fields)
             if any(f in fields for f in GRADIENT_FIELDS):
+                if spec is not None:
+                    raise JaxdenoiseError("adaptive sampling renders no gradient buffers (dx, dy); request methods "
+                                          "or buffers without them, or sample uniformly")
                 key.update(shift=shift, primal=primal)
+            if spec is not None:
+                fields = fields + [SAMPLE_COUNT_FIELD]
+                key.update(fields=fields, adaptive=spec.label, passes=int(passes), initial_spp=initial_spp)
             jobs.append((name, key, s, i, fields))
     if ref_spp:
         jobs.append(("reference.exr", dict(base_key, spp=int(ref_spp), reference=True), int(ref_spp), None, ["color"]))
@@ -247,10 +260,18 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
                                             "the full reference's own RelMSE is about a quarter of it"}
             else:
                 fseed = derive_seed(seed, "noisy", s, inst)
-                data, seconds, compile_seconds, grad_seconds, stats = _noisy_frame(
-                    loaded, s, fseed, settings, fields, samples_per_pass, shift, primal, tick)
+                if spec is not None:
+                    data, seconds, compile_seconds, adaptive_info = _adaptive_frame(
+                        loaded, s, fseed, settings, fields, samples_per_pass, spec, passes, initial_spp, camera, tick)
+                    grad_seconds, stats = 0.0, None
+                else:
+                    data, seconds, compile_seconds, grad_seconds, stats = _noisy_frame(
+                        loaded, s, fseed, settings, fields, samples_per_pass, shift, primal, tick)
                 bufs = Buffers(**{f: data[f] for f in fields if f in data}, spp=s, **camera)
                 attrs = _attrs(base_key, s, inst, seconds)
+                if spec is not None:
+                    attrs.update(adaptive=spec.label, adaptive_passes=int(passes),
+                                 adaptive_pilot_spp=int(adaptive_info["pilot_spp"]))
                 if grad_seconds:
                     attrs.update(gradient_shift=shift, primal=primal)
                 write_buffers(out_dir / name, bufs, attrs)
@@ -262,6 +283,8 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
                 if grad_seconds:
                     files[name]["gradient_note"] = GRADIENT_TIME_NOTE
                     files[name]["shift_stats"] = stats
+                if spec is not None:
+                    files[name]["adaptive"] = adaptive_info
             files.setdefault(name, {})
             files[name].update({"key": key, "sha256": sha256(out_dir / name), "data_sha256": dsha})
             if inst is None:
@@ -275,7 +298,9 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
         if bar is not None:
             bar.close()
     # Drop entries of files no longer requested, so the record lists exactly the shot's files.
-    wanted = {j[0] for j in jobs}
+    # (a run of the other sampling mode keeps its files: uniform and adaptive frames share the shot)
+    wanted = {j[0] for j in jobs} | {k for k in files if _mode(k) != _mode(noisy_name(1, 0, spec))
+                                     and k != "reference.exr" and (out_dir / k).exists()}
     rec["files"] = {k: v for k, v in files.items() if k in wanted}
     rec["render_seconds"] = float(sum(v.get("seconds", 0.0) for v in rec["files"].values()))
     write_json(out_dir / SHOT_RECORD, rec)
@@ -306,6 +331,43 @@ def render_frame(scene: Any, *, spp: int = 4, methods: Iterable[str] | None = No
     data = _noisy_frame(loaded, int(spp), derive_seed(seed, "noisy", int(spp), int(instance)), settings, fields,
                         samples_per_pass, shift, primal, None)[0]
     return Buffers(**{f: data[f] for f in fields if f in data}, spp=int(spp), **camera)
+
+
+def noisy_name(spp: int, instance: int, spec=None) -> str:
+    """A noisy frame's file: ``spp0016_00.exr``, or ``spp0016_00_adaptive-oidn-halves.exr`` for an
+    adaptive one (`data_gen.adaptive.Spec`), so both sit in one shot beside one reference."""
+    tail = "" if spec is None else "_adaptive-" + spec.label.replace(":", "-")
+    return f"spp{int(spp):04d}_{int(instance):02d}{tail}.exr"
+
+
+def _mode(name: str) -> str:
+    """The sampling mode a noisy file's name says (``''``: uniform)."""
+    stem = name[:-4] if name.endswith(".exr") else name
+    return stem.split("_", 2)[2] if stem.count("_") >= 2 else ""
+
+
+def _check_adaptive(adaptive, spp, passes, initial_spp):
+    """The parsed adaptive spec (None: uniform sampling), with every spp's plan checked up front."""
+    if adaptive is None:
+        return None
+    from .adaptive import parse_spec, plan
+
+    spec = parse_spec(adaptive)
+    for s in spp:
+        plan(int(s), passes, initial_spp, 1)
+    return spec
+
+
+def _adaptive_frame(loaded, spp, fseed, settings, fields, samples_per_pass, spec, passes, initial_spp, camera, tick):
+    """(buffers dict, seconds, compile seconds, the run's record) of one adaptive frame; the seconds
+    are the render's and the maps' (estimates and denoising)."""
+    from .adaptive import render_adaptive
+
+    record_feats = [f for f in FEATURES if f in fields or f"{f}_var" in fields]
+    data, info = render_adaptive(loaded, spp=spp, adaptive=spec, passes=passes, initial=initial_spp, seed=fseed,
+                                 settings=settings, record=record_feats, samples_per_pass=samples_per_pass,
+                                 camera=camera, on_pass=tick)
+    return data, info["render_seconds"] + info["map_seconds"], info["compile_seconds"], info
 
 
 def _check_shift(shift: str | None, primal: str) -> str:

@@ -387,6 +387,8 @@ def _record(shot: Shot, render: Render, method: str, r: dict, image: np.ndarray,
            "rss_peak_bytes": r["rss_peak_bytes"], "xla_bytes": r["xla_bytes"],
            "height": int(ref.shape[0]), "width": int(ref.shape[1]), "buffers": read,
            "input_relmse": float(metrics.relmse(np.asarray(buffers.color, np.float32), ref)), **extra}
+    if render.sampling:
+        rec["sampling"] = render.sampling
     if image is not None:
         rec.update(score(image, ref))
     return rec
@@ -403,19 +405,20 @@ def summarize(records: list[dict]) -> list[dict]:
     frame of the row has one)."""
     groups: dict[tuple, list[dict]] = {}
     for r in records:
-        groups.setdefault((r["method"], r["spp"]), []).append(r)
-    order = {m: i for i, m in enumerate(dict.fromkeys(r["method"] for r in records))}
+        groups.setdefault((series(r), r["spp"]), []).append(r)
+    order = {m: i for i, m in enumerate(dict.fromkeys(series(r) for r in records))}
     rss_peak: dict[str, int] = {}
     for r in records:
         if r.get("rss_peak_bytes") is not None:
             rss_peak[r["method"]] = max(rss_peak.get(r["method"], 0), int(r["rss_peak_bytes"]))
     timed = lambda rs, k: [r[k] for r in rs if r.get(k) is not None]  # None: an untimed (quality-only) run
     rows = []
-    for (method, spp), rs in sorted(groups.items(), key=lambda kv: (order[kv[0][0]], kv[0][1] or 0)):
+    for (label, spp), rs in sorted(groups.items(), key=lambda kv: (order[kv[0][0]], kv[0][1] or 0)):
+        method = rs[0]["method"]
         render = [r["render_seconds"] for r in rs]
         xla = [r["xla_bytes"] for r in rs if r.get("xla_bytes") is not None]
         rows.append({
-            "method": method, "spp": spp, "frames": len(rs),
+            "method": label, "spp": spp, "frames": len(rs),
             "relmse": float(np.mean([r["relmse"] for r in rs])),
             "ssim": float(np.mean([r["ssim"] for r in rs])),
             "psnr": float(np.mean([r["psnr"] for r in rs])),
@@ -431,6 +434,13 @@ def summarize(records: list[dict]) -> list[dict]:
             "notes": _row_notes(rs),
         })
     return rows
+
+
+def series(record: dict) -> str:
+    """A record's row label: the method, and for an adaptively sampled frame (data_gen's
+    ``--adaptive``, whose render time includes the map's) the sampling, e.g. ``demc (adaptive
+    relvar)``: adaptive and uniform frames are separate rows and separate curves."""
+    return record["method"] + (f" (adaptive {record['sampling']})" if record.get("sampling") else "")
 
 
 def _row_notes(rs: list[dict]) -> list[str]:

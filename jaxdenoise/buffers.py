@@ -35,6 +35,7 @@ CHANNELS: dict[str, tuple[str, ...]] = {
     "roughness_var": ("rough.var",),
     "dx": ("dx.R", "dx.G", "dx.B"),
     "dy": ("dy.R", "dy.G", "dy.B"),
+    "spp_map": ("spp",),
 }
 IMAGE_FIELDS: tuple[str, ...] = tuple(CHANNELS)
 # Features whose variance is a separate field (Kalantari 2015 Eq. 12 uses a per-feature variance).
@@ -45,6 +46,9 @@ METADATA_FIELDS: tuple[str, ...] = ("spp", "world_to_camera", "world_to_ndc")
 # Metadata that is a 4x4 matrix per frame (`jaxdenoise.view` documents the conventions).
 MATRIX_FIELDS: tuple[str, ...] = ("world_to_camera", "world_to_ndc")
 ALL_FIELDS: tuple[str, ...] = IMAGE_FIELDS + METADATA_FIELDS
+# The per-pixel sample count of an adaptively sampled frame (EXR layer ``spp``; the header's ``spp`` is
+# its mean). Like the header's count it travels with the frame: `Buffers.only` never drops it.
+SAMPLE_COUNT_FIELD = "spp_map"
 # The OpenEXR standard header attribute that carries each matrix (`jaxdenoise.io` reads and writes them).
 MATRIX_HEADERS: dict[str, str] = {"world_to_camera": "worldToCamera", "world_to_ndc": "worldToNDC"}
 
@@ -62,10 +66,11 @@ class Buffers:
     hit texture value), ``normal`` (world-space shading normal in [-1, 1]), ``position`` (world),
     ``depth`` (camera distance), ``visibility`` (direct-light visibility fraction), ``roughness``,
     ``dx`` / ``dy`` (``I[y, x+1] - I[y, x]`` and ``I[y+1, x] - I[y, x]``), ``<feature>_var`` (one
-    channel, variance of the feature's pixel mean) and the frame's metadata: ``spp`` (samples per
-    pixel, scalar or one per frame), ``world_to_camera`` and ``world_to_ndc`` (the camera, 4x4
-    matrices acting on column vectors, ``(4, 4)`` or one per frame; OpenEXR's ``worldToCamera`` /
-    ``worldToNDC`` header attributes; conventions and the view-space quantities derived from them in
+    channel, variance of the feature's pixel mean), ``spp_map`` (one channel, the samples each pixel
+    got where sampling was adaptive, `data_gen.adaptive`; None where every pixel got ``spp``) and the
+    frame's metadata: ``spp`` (samples per pixel, scalar or one per frame; the mean of ``spp_map``),
+    ``world_to_camera`` and ``world_to_ndc`` (the camera, 4x4 matrices acting on column vectors,
+    ``(4, 4)`` or one per frame; OpenEXR's ``worldToCamera`` / ``worldToNDC`` header attributes; conventions and the view-space quantities derived from them in
     `jaxdenoise.view`).
     """
 
@@ -87,6 +92,7 @@ class Buffers:
     roughness_var: Any = None
     dx: Any = None
     dy: Any = None
+    spp_map: Any = None
     spp: Any = None
     world_to_camera: Any = None
     world_to_ndc: Any = None
@@ -184,9 +190,9 @@ class Buffers:
         return dataclasses.replace(self, **changes)
 
     def only(self, names: Iterable[str]) -> "Buffers":
-        """A copy keeping ``color``, the given buffers and the frame's metadata (``spp``: never
-        dropped, whatever ``names`` says), every other buffer set to ``None``."""
-        keep = set(names) | {"color"} | set(METADATA_FIELDS)
+        """A copy keeping ``color``, the given buffers and the frame's sample counts and metadata
+        (``spp``, ``spp_map``: never dropped, whatever ``names`` says), every other buffer set to ``None``."""
+        keep = set(names) | {"color", SAMPLE_COUNT_FIELD} | set(METADATA_FIELDS)
         return Buffers(**{f: (getattr(self, f) if f in keep else None) for f in ALL_FIELDS})
 
     def astype(self, dtype: Any) -> "Buffers":

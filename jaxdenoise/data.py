@@ -40,6 +40,7 @@ class Render:
     render_seconds: float | None  # the whole frame: every pass that made its buffers
     gradient_seconds: float | None = None  # of which the gradient pass (dx, dy), when known
     primal: str | None = None  # "gpt": the colour came from the gradient pass (data_gen --primal gpt)
+    sampling: str | None = None  # adaptive frames: the map's spec (header 'adaptive'); None: uniform
 
 
 @dataclasses.dataclass(frozen=True)
@@ -107,7 +108,7 @@ def discover(data_dir: str | os.PathLike) -> list[Shot]:
             rs = h.get("render_seconds", entry.get("seconds"))
             gs = h.get("gradient_seconds", entry.get("gradient_seconds"))
             renders.append(Render(p, h.get("spp"), float(rs) if rs is not None else None,
-                                  float(gs) if gs is not None else None, h.get("primal")))
+                                  float(gs) if gs is not None else None, h.get("primal"), h.get("adaptive")))
         shots.append(Shot(ref.parent, ref, tuple(renders)))
     if not shots:
         raise FileNotFoundError(f"{root}: no shot found (a shot is a folder holding {REFERENCE} and noisy EXRs)")

@@ -36,7 +36,7 @@ REPAIR_POLICY = (
     "pixels per channel are returned in attrs['repaired'] and a RuntimeWarning is issued.")
 
 # Channels that must not be negative: radiance and all variances.
-_NONNEGATIVE = {"color", "color_var"} | {f for f in IMAGE_FIELDS if f.endswith("_var")}
+_NONNEGATIVE = {"color", "color_var", "spp_map"} | {f for f in IMAGE_FIELDS if f.endswith("_var")}
 # EXR attributes OpenImageIO adds on its own; not renderer settings.
 _HOUSEKEEPING_PREFIXES = ("oiio:", "openexr:", "compression", "PixelAspectRatio", "screenWindow",
                           "DateTime", "Software")

@@ -734,6 +734,8 @@ STUDIES: dict[str, tuple[str, str]] = {
     "reliability.md": ("reliability_report", "reliability.json"),
     "stability.md": ("stability_report", "stability.json"),
     "inverse_rendering/inverse_rendering.md": ("inverse_rendering", "inverse_rendering/inverse_rendering.json"),
+    "adaptive/adaptive.md": ("adaptive", "adaptive/adaptive.json"),
+    "adaptive/variants.md": ("adaptive_variants", "adaptive/variants.json"),
 }
 
 # Pages written by hand that state no measured number of their own (they point to the pages above).

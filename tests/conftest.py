@@ -20,8 +20,9 @@ from jaxdenoise.buffers import CHANNELS, Buffers
 
 
 def synthetic_frame(h: int = 8, w: int = 10, seed: int = 0, spp: int | None = 4,
-                    fields=tuple(CHANNELS), camera: bool = True) -> Buffers:
-    """A frame with plausible values in every requested buffer (radiance >= 0, normals unit)."""
+                    fields=tuple(f for f in CHANNELS if f != "spp_map"), camera: bool = True) -> Buffers:
+    """A frame with plausible values in every requested buffer (radiance >= 0, normals unit); by
+    default every buffer of a uniformly sampled frame (no per-pixel ``spp_map``)."""
     rng = np.random.default_rng(seed)
     out = {}
     for f in fields:

@@ -173,7 +173,9 @@ def prepare(buffers: Buffers, config: Config) -> dict:
     if buffers.spp is None:
         raise BuffersError("lbf: the frame has no 'spp'; the secondary features need its sample count "
                            "(Sec. 3.3) and it is never guessed")
-    x = secondary_features(guides, gvars, buffers.spp, features=config.features)
+    # an adaptively sampled frame's per-pixel counts (the header's spp is their mean; issue 40)
+    spp = buffers.spp if buffers.spp_map is None else buffers.spp_map[..., 0]
+    x = secondary_features(guides, gvars, spp, features=config.features)
     return {"x": x, "color": jnp.asarray(buffers.color, jnp.float32),
             "color_var": jnp.asarray(buffers.color_var, jnp.float32), "guides": guides, "guide_vars": gvars}
 

@@ -123,7 +123,8 @@ def secondary_features(feats: Mapping[str, jax.Array], variances: Mapping[str, j
 
     ``feats[name]`` is the (prefiltered) pixel-mean feature, shape (..., H, W, C);
     ``variances[name]`` the (smoothed) variance of that pixel mean, shape (..., H, W, 1);
-    ``spp`` the samples per pixel (scalar, or one per leading frame).
+    ``spp`` the samples per pixel (scalar, one per leading frame, or one per pixel, shape (..., H, W),
+    for an adaptively sampled frame).
     """
     missing = [f for f in features if f not in feats or f not in variances]
     if missing:
