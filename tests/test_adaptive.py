@@ -188,9 +188,9 @@ def test_cli_renders_an_adaptive_frame(tmp_path):
     cmd = [sys.executable, "-m", "data_gen", "render", "default", "--width", "16", "--spp", "8", "--ref-spp", "0",
            "--methods", "oidn", "--adaptive", "relvar", "--passes", "2", "--out", str(tmp_path), "--no-progress"]
     subprocess.run(cmd, check=True, capture_output=True, text=True)
-    b, attrs = read_buffers(tmp_path / "spp0008_00.exr")
+    b, attrs = read_buffers(tmp_path / "spp0008_00_adaptive-relvar.exr")
     assert float(b.spp) == 8.0 and float(b.spp_map.mean()) == 8.0 and b.spp_map.min() >= 1
     assert attrs["adaptive"] == "relvar" and attrs["adaptive_passes"] == 2
-    bad = subprocess.run(cmd[:-4] + ["--adaptive", "halves", "--out", str(tmp_path / "x")], capture_output=True,
+    bad = subprocess.run(cmd[:-3] + ["--adaptive", "halves", "--out", str(tmp_path / "x")], capture_output=True,
                          text=True)
     assert bad.returncode == 2 and "needs a denoiser" in bad.stderr
