@@ -221,7 +221,7 @@ def page(res: dict) -> str:
     return "\n".join(lines)
 
 
-def plot(res: dict, path: Path) -> None:
+def plot_adaptive(res: dict, path: Path) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -268,7 +268,7 @@ def main(argv=None) -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     write_study(out, "adaptive.json", "adaptive.md", res, page)
-    plot(res, out / "error_vs_time.png")
+    plot_adaptive(res, out / "error_vs_time.png")
     print(page(res))
 
 

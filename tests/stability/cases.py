@@ -691,6 +691,7 @@ def check_solver(name: str, case: Case, alpha: float, *, gradients: str = "rende
 
 
 def _all_fields_present() -> bool:
-    """Every case carries every buffer (so a method's ``needs`` decides what it reads)."""
+    """Every case carries every buffer of a uniformly sampled frame (so a method's ``needs`` decides
+    what it reads); the per-pixel ``spp_map`` belongs to adaptive frames only."""
     d, _ = CASES[0].arrays()
-    return set(d) | {"spp"} | set(CAMERA) == set(ALL_FIELDS)
+    return set(d) | {"spp"} | set(CAMERA) == set(ALL_FIELDS) - {"spp_map"}
