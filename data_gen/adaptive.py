@@ -96,7 +96,7 @@ def _split(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return a, c - a
 
 
-def _buffers_from(acc: dict, n: np.ndarray, s2: dict, spp_map: np.ndarray, camera: dict):
+def _buffers_from(acc: dict, n: np.ndarray, s2: dict, camera: dict):
     """`Buffers` of the count-pooled mean ``acc[name] / n`` with variance ``s2 / n`` (maps only)."""
     from jaxdenoise.buffers import Buffers
 
@@ -107,8 +107,8 @@ def _buffers_from(acc: dict, n: np.ndarray, s2: dict, spp_map: np.ndarray, camer
             f[name] = acc[name] / nn
             f[f"{name}_var"] = np.mean(s2[name], -1, keepdims=True) / nn
     f = {k: np.asarray(v, np.float32) for k, v in f.items()}
-    return Buffers(**f, spp_map=spp_map.astype(np.float32)[..., None],
-                   spp=float(max(1, round(float(np.mean(spp_map))))), **camera)
+    return Buffers(**f, spp_map=n.astype(np.float32)[..., None], spp=float(max(1, round(float(np.mean(n))))),
+                   **camera)
 
 
 def render_adaptive(scene, *, spp: int, adaptive: str | Spec = "relvar", passes: int = 1,
@@ -138,7 +138,7 @@ def render_adaptive(scene, *, spp: int, adaptive: str | Spec = "relvar", passes:
     width, height = film_size(scene)
     npix = width * height
     n0, budgets = plan(spp, passes, initial, npix)
-    weights = [n0 * npix / (spp * npix)] + [b / (spp * npix) for b in budgets]
+    weights = [n0 / spp] + [b / (spp * npix) for b in budgets]   # each pass's share of the budget
     wanted = set(record)
     if spec.method is not None:
         from jaxdenoise.methods import get
@@ -186,19 +186,17 @@ def render_adaptive(scene, *, spp: int, adaptive: str | Spec = "relvar", passes:
         t0 = time.perf_counter()
         s2 = _pooled_variance(passes_out, names)
         n_all = half_n[0] + half_n[1]
-        spp_map = n_all
         if spec.method is None:
             err = ad.relative_variance((half_sum[0]["color"] + half_sum[1]["color"]) / n_all[..., None],
                                        s2["color"] / n_all[..., None])
+        elif spec.estimator == "halves":
+            bufs = [_buffers_from(half_sum[h], half_n[h], s2, camera or {}) for h in (0, 1)]
+            da, db = (np.asarray(denoise(b)) for b in bufs)
+            err = ad.halves_error(da, db)
         else:
-            full = {k2: half_sum[0][k2] + half_sum[1][k2] for k2 in names}
-            if spec.estimator == "halves":
-                bufs = [_buffers_from(half_sum[h], half_n[h], s2, half_n[h], camera or {}) for h in (0, 1)]
-                da, db = (np.asarray(denoise(b)) for b in bufs)
-                err = ad.halves_error(da, db)
-            else:
-                b = _buffers_from(full, n_all, s2, spp_map, camera or {})
-                err = ad.relative_variance(b.color, b.color_var, denoised=np.asarray(denoise(b)))
+            full = {name: half_sum[0][name] + half_sum[1][name] for name in names}
+            b = _buffers_from(full, n_all, s2, camera or {})
+            err = ad.relative_variance(b.color, b.color_var, denoised=np.asarray(denoise(b)))
         err = np.asarray(jax.block_until_ready(ad.smooth(err, size=smooth)), np.float64)
         floor = max(1, int(floor_fraction * budgets[k] / npix))
         counts = ad.allocate(err, n_all, budgets[k], floor=floor, cap=cap, cost=cost if cost_aware else None)

@@ -77,6 +77,22 @@ def _sample_wavefront(scene, sensor, sampler, idx, width: int):
     return camera_ray(sensor, sampler, dr.fma(pos_f, scale, offset))
 
 
+def _traced_components(scene, sensor, sampler, idx, width: int, settings, record, rough, names) -> list:
+    """Trace the wavefront whose samples fall on pixels ``idx``; return every buffer of ``names`` as
+    per-sample scalar arrays (colour and 3-vectors split per channel), evaluated in one launch."""
+    import drjit as dr
+
+    ray, weight = _sample_wavefront(scene, sensor, sampler, idx, width)
+    out = trace(scene, sampler, ray, True, settings=settings, record=record, roughness=rough)
+    out["color"] = out["color"] * weight
+    comps = []
+    for name in names:
+        v = out[name]
+        comps.extend([v[c] for c in range(3)] if _channels(name) == 3 else [v])
+    dr.eval(*comps)
+    return comps
+
+
 def camera_samples(sensor, sampler):
     """The camera sample dimensions after the film position (aperture, time, wavelength), drawn in
     this fixed order, which `data_gen.gradient` relies on to replay the same samples."""
@@ -134,14 +150,7 @@ def render_moments(scene, *, spp: int, seed: int, settings: PathSettings, record
             idx = dr.arange(mi.UInt32, npix * n)
             if n > 1:
                 idx = idx // dr.opaque(mi.UInt32, n)
-            ray, weight = _sample_wavefront(scene, sensor, sampler, idx, width)
-            out = trace(scene, sampler, ray, True, settings=settings, record=record, roughness=rough)
-            out["color"] = out["color"] * weight
-            comps = []
-            for name in names:
-                v = out[name]
-                comps.extend([v[c] for c in range(3)] if _channels(name) == 3 else [v])
-            dr.eval(*comps)
+            comps = _traced_components(scene, sensor, sampler, idx, width, settings, record, rough, names)
             sums = [dr.block_sum(c, n) for c in comps] + [dr.block_sum(c * c, n) for c in comps]
             dr.eval(*sums)
             arrs = [np.asarray(a, dtype=np.float64) for a in sums]
@@ -152,7 +161,7 @@ def render_moments(scene, *, spp: int, seed: int, settings: PathSettings, record
                 acc[name][0][:] += np.stack(arrs[i:i + c], -1)
                 acc[name][1][:] += np.stack(arrs[nc + i:nc + i + c], -1)
                 i += c
-            del out, comps, sums
+            del comps, sums
             done += n
             k += 1
             if on_pass is not None:
@@ -238,14 +247,8 @@ def _render_parts(scene, sensor, parts, seed, settings, record, rough, accs, nam
         if n:
             sampler.seed(dr.opaque(mi.UInt32, derive_seed(seed, "pass", k)), n)   # render_moments' streams
             pix = np.repeat(np.arange(start, end, dtype=np.uint32), c)
-            ray, weight = _sample_wavefront(scene, sensor, sampler, mi.UInt32(pix), width)
-            out = trace(scene, sampler, ray, True, settings=settings, record=record, roughness=rough)
-            out["color"] = out["color"] * weight
-            comps = []
-            for name in names:
-                v = out[name]
-                comps.extend([v[i] for i in range(3)] if _channels(name) == 3 else [v])
-            dr.eval(*comps)                      # one launch traces the wavefront for every component
+            comps = _traced_components(scene, sensor, sampler, mi.UInt32(pix), width, settings, record, rough,
+                                       names)
             # each part's range [b_q, b_{q+1}) of a pixel's samples; b_0 = the pixel's first sample
             bounds = [np.cumsum(c) - c]
             for part in parts:
@@ -259,7 +262,7 @@ def _render_parts(scene, sensor, parts, seed, settings, record, rough, accs, nam
                     acc[name][0][start:end] += np.stack([a for a, _ in arr[i:i + ch]], -1)
                     acc[name][1][start:end] += np.stack([b for _, b in arr[i:i + ch]], -1)
                     i += ch
-            del out, comps, res
+            del comps, res
             k += 1
         if on_pass is not None:
             on_pass(n / npix)
