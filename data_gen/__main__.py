@@ -9,7 +9,7 @@ import time
 
 from jaxdenoise.errors import JaxdenoiseError
 
-from .gradient import DEFAULT_SHIFT, PRIMALS, SHIFTS
+from .gradient import DEFAULT_SHIFT, DIRECT_EMISSION, PRIMALS, SHIFTS
 
 
 def _spp_list(text: str) -> list[int]:
@@ -50,6 +50,10 @@ def main(argv: list[str] | None = None) -> int:
         q.add_argument("--primal", choices=PRIMALS, default="base",
                        help="colour of gradient frames: the plain base paths or, with --shift reconnect, the "
                             "G-PT primal (MIS over each pixel's neighbour pairs) (default: base)")
+        q.add_argument("--gradient-emission", choices=DIRECT_EMISSION, default="separate",
+                       help="directly seen emission of gradient frames: kept out of dx, dy in a layer of its own "
+                            "that reconstruction adds back, as Kettunen et al.'s tracer (separate), or in the "
+                            "gradients as data_gen did before 0.7.0 (included) (default: separate)")
         q.add_argument("--out", required=True, help="output folder (required)")
         q.add_argument("--variant", default="llvm_ad_rgb",
                        help="preferred Mitsuba variant; scalar_rgb if it does not work (default: llvm_ad_rgb)")
@@ -139,7 +143,8 @@ def _run(a: argparse.Namespace, argv: list[str]) -> int:
             rec = render_sequence(scene, a.out, n_frames=a.frames, spp=a.spp, instances=a.instances,
                                   ref_spp=a.ref_spp, seed=a.seed, buffers=_names(a.buffers),
                                   progress=not a.no_progress, max_depth=a.max_depth, methods=_names(a.methods),
-                                  shift=a.shift, primal=a.primal, width=a.width, height=a.height)
+                                  shift=a.shift, primal=a.primal, gradient_emission=a.gradient_emission,
+                                  width=a.width, height=a.height)
             frames = rec.get("frames", [])
             n = sum(len(f.get("files", {})) for f in frames)
             secs = sum(f.get("render_seconds", 0.0) for f in frames)
@@ -149,7 +154,8 @@ def _run(a: argparse.Namespace, argv: list[str]) -> int:
         rec = render_shot(scene, a.out, spp=a.spp, ref_spp=a.ref_spp, instances=a.instances,
                           methods=_names(a.methods), buffers=_names(a.buffers), max_depth=a.max_depth,
                           seed=a.seed, progress=not a.no_progress, width=a.width, height=a.height,
-                          shift=a.shift, primal=a.primal, adaptive=a.adaptive, passes=a.passes,
+                          shift=a.shift, primal=a.primal, gradient_emission=a.gradient_emission,
+                          adaptive=a.adaptive, passes=a.passes,
                           initial_spp=a.initial_spp)
         rec["command"] = command
         ref = rec.get("reference") or {}
@@ -171,7 +177,7 @@ def _run(a: argparse.Namespace, argv: list[str]) -> int:
                          ref_spp=a.ref_spp, seed=a.seed, start=a.start, workers=a.workers, max_depth=a.max_depth,
                          methods=_names(a.methods), buffers=_names(a.buffers), progress=not a.no_progress,
                          command=command, note=a.note, scheduler=a.scheduler, frames=a.frames,
-                         shift=a.shift, primal=a.primal)
+                         shift=a.shift, primal=a.primal, gradient_emission=a.gradient_emission)
     size = dataset_size_bytes(a.out) / 2**20
     last = m["runs"][-1]
     where = (f", Dask {a.scheduler}: {last.get('workers', '?')} worker(s), {last.get('retries', 0)} retried shot(s)"

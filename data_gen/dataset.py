@@ -30,7 +30,8 @@ def generate_dataset(family: str | None, count: int | None, out: str | os.PathLi
                      methods: Iterable[str] | None = None, buffers: Iterable[str] | None = None,
                      progress: bool = True, samples_per_pass: int = 1 << 20, command: str | None = None,
                      note: str | None = None, scheduler: str | None = None, frames: int = 0,
-                     shift: str | None = None, primal: str = "base", library: str | None = None,
+                     shift: str | None = None, primal: str = "base", gradient_emission: str = "separate",
+                     library: str | None = None,
                      _stop_after: int | None = None,
                      _die_once: str | None = None) -> dict:
     """Render ``count`` procedural scenes of ``family`` (scene k uses seed ``seed + start + k`` and
@@ -48,7 +49,8 @@ def generate_dataset(family: str | None, count: int | None, out: str | os.PathLi
     ``workers`` (`data_gen.cluster`); the output is the same files. ``frames > 0`` renders each
     scene as a camera fly-through of that many frames (`data_gen.sequences.render_sequence`:
     ``scene_XXXX/frame_XXXX/``, every frame with ``instances`` noisy renders per spp and its own
-    reference). ``shift``/``primal``: the gradient frames' shift mapping and colour (`render_shot`)."""
+    reference). ``shift``/``primal``/``gradient_emission``: the gradient frames' shift mapping, colour and
+    directly seen emission (`render_shot`)."""
     import json
 
     from jaxdenoise.fsutil import remove_stale_temporaries, write_json
@@ -94,7 +96,8 @@ def generate_dataset(family: str | None, count: int | None, out: str | os.PathLi
            "spp": list(spp), "instances": instances, "ref_spp": ref_spp, "max_depth": max_depth,
            "methods": list(methods) if methods is not None else None,
            "buffers": list(buffers) if buffers is not None else None, "command": command, "note": note,
-           "scheduler": scheduler, "frames": int(frames), "shift": shift, "primal": primal, "library": library}
+           "scheduler": scheduler, "frames": int(frames), "shift": shift, "primal": primal,
+           "gradient_emission": gradient_emission, "library": library}
     run_id = f"{os.getpid()}-{time.time_ns()}"
     jobs = []
     for k, lib_scene in enumerate(names):
@@ -107,7 +110,7 @@ def generate_dataset(family: str | None, count: int | None, out: str | os.PathLi
                      "buffers": list(buffers) if buffers is not None else None, "max_depth": max_depth,
                      "progress": progress and workers == 1 and scheduler is None,
                      "samples_per_pass": samples_per_pass, "_stop_after": _stop_after, "run_id": run_id,
-                     "frames": int(frames), "shift": shift, "primal": primal,
+                     "frames": int(frames), "shift": shift, "primal": primal, "gradient_emission": gradient_emission,
                      "_die_once": _die_once})
     run["status"] = "running"
     manifest["runs"].append(run)  # recorded before rendering, so an interrupted run is listed too

@@ -129,7 +129,8 @@ def _direction_sample(ds, *, p, d, dist):
 
 
 def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, settings: PathSettings,
-              shift: ShiftSettings = ShiftSettings(), roughness: RoughnessLookup | None = None) -> dict:
+              shift: ShiftSettings = ShiftSettings(), roughness: RoughnessLookup | None = None,
+              separate_emission: bool = True) -> dict:
     """Trace one base path per lane of ``ray`` and shift it to the four ``offset_rays`` (camera rays
     through the `NEIGHBOURS`, same camera samples; ``*_weight`` the camera weights).
 
@@ -137,7 +138,17 @@ def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, setti
     `data_gen.integrator.trace` returns for the same sampler and ray), and per neighbour ``k``
     ``grad[k]`` (this lane's share of ``I[neighbour] - I[pixel]``), ``main[k]`` and ``shifted[k]``
     (its shares of the MIS estimates of its own pixel and of the neighbour), ``flags`` (UInt32:
-    bits ``(RECONNECTED | HALF_VECTOR | FAILED) << (3 k)``).
+    bits ``(RECONNECTED | HALF_VECTOR | FAILED) << (3 k)``) and ``emission`` (what a surface emitter
+    seen directly gives the base path: the depth-0 part of ``color`` where the camera ray hits a shape).
+
+    ``separate_emission`` (Kettunen's tracer, for surface emitters): that emission stays out of the
+    gradients and of the pair estimates; each lane gives its own pixel's MIS estimate the whole of it
+    (``main``) and its neighbours nothing, so the G-PT primal still holds it, and a reconstruction adds
+    the ``emission`` image back to what it solves from ``primal - emission`` and the gradients. An
+    environment seen directly stays in the gradients (smooth, and its directly seen radiance added back
+    unfiltered made the thin-lens scene's reconstruction worse; docs/methods/gradient_domain.md).
+    False: every depth-0 pair is weighted 1/2 from each end like every other pair (Jacobian 1, equal
+    densities), and the visible emitters' edges enter ``grad``.
     """
     import drjit as dr
     import mitsuba as mi
@@ -164,6 +175,7 @@ def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, setti
     ds0 = mi.DirectionSample3f(scene, si=si, ref=dr.zeros(mi.SurfaceInteraction3f))
     L = Spectrum(0.0) + dr.select(Bool(True), Spectrum(1.0) * 1.0 * ds0.emitter.eval(si, True), 0.0)
     c_x0 = si.emitter(scene).eval(si, True)
+    e_x0 = dr.select(si.is_valid(), c_x0, 0.0)  # what a surface emitter seen directly gives
     valid0 = si.is_valid()
     w_x = Spectrum(weight)
     offs = []
@@ -172,9 +184,16 @@ def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, setti
         beta_y = Spectrum(offset_weights[k]) / dr.select(w_x != 0.0, w_x, 1.0)
         c_y0 = beta_y * si_y.emitter(scene).eval(si_y, True)
         alive = valid0 & si_y.is_valid()
+        if separate_emission:
+            # A surface emitter seen directly goes to the base pixel whole; an environment seen directly
+            # (an invalid hit) stays a pair like any other (docs/methods/gradient_domain.md).
+            env_x, env_y = c_x0 - e_x0, dr.select(si_y.is_valid(), 0.0, c_y0)
+            g0, pm0, ps0 = 0.5 * (env_y - env_x), e_x0 + 0.5 * env_x, 0.5 * env_y
+        else:
+            g0, pm0, ps0 = 0.5 * (c_y0 - c_x0), 0.5 * c_x0, 0.5 * c_y0
         offs.append(dict(
             st=dr.select(alive, UInt32(NOT_CONNECTED), UInt32(DEAD)), si=si_y, yp=mi.Point3f(0.0),
-            beta=beta_y, R=Float(1.0), g=0.5 * (c_y0 - c_x0), pm=0.5 * c_x0, ps=0.5 * c_y0,
+            beta=beta_y, R=Float(1.0), g=g0, pm=pm0, ps=ps0,
             fl=dr.select(valid0 & ~si_y.is_valid(), UInt32(FAILED << (3 * k)), UInt32(0)),
         ))
     state = dict(ray=mi.Ray3f(ray), si=si, depth=UInt32(0), L=L, beta=Spectrum(1.0), eta=Float(1.0),
@@ -391,5 +410,5 @@ def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, setti
     state = dr.while_loop((state, sampler), lambda s, smp: s["active"], body, label="data_gen.gpt")[0]
     offs = state["offs"]
     return dict(color=state["L"] * w_x, grad=[o["g"] * w_x for o in offs], main=[o["pm"] * w_x for o in offs],
-                shifted=[o["ps"] * w_x for o in offs],
+                shifted=[o["ps"] * w_x for o in offs], emission=e_x0 * w_x,
                 flags=offs[0]["fl"] | offs[1]["fl"] | offs[2]["fl"] | offs[3]["fl"])

@@ -37,14 +37,14 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .integrator import PathSettings, derive_seed, trace
+from .integrator import EMISSION, PathSettings, derive_seed, trace
 from .mitsuba_setup import is_vectorized, setup_mitsuba
 from .gpt import NEIGHBOURS, ShiftSettings, trace_gpt
 from .render import DEFAULT_SAMPLES_PER_PASS, camera_ray, camera_samples
 from .scenes import load_scene
 from jaxdenoise.errors import JaxdenoiseError
 
-__all__ = ["render_gradients", "trace_shifted", "trace_reconnect", "OFFSETS", "SHIFTS"]
+__all__ = ["render_gradients", "trace_shifted", "trace_reconnect", "OFFSETS", "SHIFTS", "DIRECT_EMISSION"]
 
 # Film offsets (pixels) of the three correlated traces: base, horizontal and vertical neighbour.
 OFFSETS: dict[str, tuple[int, int]] = {"base": (0, 0), "dx": (1, 0), "dy": (0, 1)}
@@ -54,6 +54,10 @@ SHIFTS: tuple[str, ...] = ("replay", "reconnect")
 PRIMALS: tuple[str, ...] = ("base", "gpt")
 # The shift data_gen uses for dx, dy unless told otherwise (docs/results/data_gen_gradient.md).
 DEFAULT_SHIFT = "reconnect"
+# Where the directly seen emission goes (Kettunen et al. 2015's tracer: "separate", the default): kept out
+# of dx, dy and returned as an image of its own (``emission``) that a reconstruction adds back, or
+# "included" in the gradients like every other path (what data_gen did before 0.7.0).
+DIRECT_EMISSION: tuple[str, ...] = ("separate", "included")
 
 
 def _wavefront(scene, *, seed: int, n: int, width: int, height: int):
@@ -99,16 +103,17 @@ def trace_shifted(scene, *, seed: int, offset: tuple[int, int], n: int, width: i
     sample dimensions (position, aperture, time, wavelength) are drawn in the same order as
     `data_gen.render` so that offset (0, 0) reproduces its samples exactly.
 
-    Returns the Dr.Jit ``Spectrum`` (unevaluated) of ``width * height * n`` lanes.
+    Returns the Dr.Jit ``Spectrum``s (unevaluated) of ``width * height * n`` lanes: the radiance and
+    the directly seen emission it holds (`data_gen.integrator.EMISSION`).
     """
     sensor, sampler, px, py, jitter = _wavefront(scene, seed=seed, n=n, width=width, height=height)
     ray, weight = camera_ray(sensor, sampler, _film_position(px, py, jitter, offset, width, height))
-    out = trace(scene, sampler, ray, True, settings=settings, record=frozenset())
-    return out["color"] * weight
+    out = trace(scene, sampler, ray, True, settings=settings, record=frozenset({EMISSION}))
+    return out["color"] * weight, out[EMISSION] * weight
 
 
 def trace_reconnect(scene, *, seed: int, n: int, width: int, height: int, settings: PathSettings,
-                    shift: ShiftSettings):
+                    shift: ShiftSettings, separate_emission: bool = True):
     """One wavefront of the reconnection shift (`data_gen.gpt.trace_gpt`): the base camera ray is the
     one `trace_shifted` builds for offset (0, 0) (same samples, so the same base path); the four
     offset rays go through the `NEIGHBOURS` with the same jitter and camera samples."""
@@ -120,7 +125,8 @@ def trace_reconnect(scene, *, seed: int, n: int, width: int, height: int, settin
         r, w = camera_ray(sensor, None, _film_position(px, py, jitter, off, width, height), cam)
         rays.append(r)
         weights.append(w)
-    out = trace_gpt(scene, sampler, ray, weight, rays, weights, settings=settings, shift=shift)
+    out = trace_gpt(scene, sampler, ray, weight, rays, weights, settings=settings, shift=shift,
+                    separate_emission=separate_emission)
     out["px"], out["py"] = px, py
     return out
 
@@ -138,6 +144,7 @@ def render_gradients(
     shift: str = DEFAULT_SHIFT,
     primal: str = "base",
     roughness_threshold: float = ShiftSettings.roughness_threshold,
+    direct_emission: str = "separate",
 ) -> dict[str, Any]:
     """Base image and gradient-domain finite differences, by primary-sample-space replay or by
     Kettunen et al.'s reconnection shift (`data_gen.gpt`).
@@ -164,6 +171,10 @@ def render_gradients(
             pixel's neighbour pairs of the MIS estimates from both ends; at the image border only
             the pairs inside the image count).
         roughness_threshold: reconnect only: `data_gen.gpt.ShiftSettings.roughness_threshold`.
+        direct_emission: ``"separate"`` (the default, as Kettunen et al.'s tracer): what a camera ray's
+            first hit emits stays out of ``dx``/``dy``, which are then the differences of
+            ``primal - emission``, and is returned as ``emission``; ``"included"``: the gradients
+            hold it like every other contribution (no ``emission``). `DIRECT_EMISSION`.
 
     Returns:
         dict of float32 ``HWC`` arrays, 3 channels, linear radiance:
@@ -178,11 +189,16 @@ def render_gradients(
         estimates (variances from the two ends' independent samples), ``n_invalid`` counts lanes
         with a non-finite value (their gradient shares count as 0), and ``shift_stats`` gives the
         fractions of offset paths that reconnected, went through a half-vector copy, and failed.
+        With ``direct_emission="separate"``: ``emission`` (the mean of the base paths' directly
+        seen emission, part of ``primal``) and ``emission_var`` (its variance of the mean, spp > 1).
     """
     if shift not in SHIFTS:
         raise JaxdenoiseError(f"shift: expected one of {SHIFTS}, got {shift!r}")
     if primal not in PRIMALS:
         raise JaxdenoiseError(f"primal: expected one of {PRIMALS}, got {primal!r}")
+    if direct_emission not in DIRECT_EMISSION:
+        raise JaxdenoiseError(f"direct_emission: expected one of {DIRECT_EMISSION}, got {direct_emission!r}")
+    separate = direct_emission == "separate"
     if primal == "gpt" and shift != "reconnect":
         raise JaxdenoiseError("primal='gpt' needs shift='reconnect' (replay has no offset estimates of a pixel)")
     shift_settings = ShiftSettings(roughness_threshold=roughness_threshold)
@@ -252,23 +268,28 @@ def render_gradients(
         pseed = derive_seed(seed, "pass", k)  # the same pass seeds as data_gen.render
         kw = dict(seed=pseed, n=n, width=width, height=height, settings=settings)
         if shift == "replay":
-            base = trace_shifted(scene, offset=OFFSETS["base"], **kw)
-            dr.eval(base)
-            shx = trace_shifted(scene, offset=OFFSETS["dx"], **kw)
-            dr.eval(shx)
-            shy = trace_shifted(scene, offset=OFFSETS["dy"], **kw)
-            dr.eval(shy)
+            base, e_b = trace_shifted(scene, offset=OFFSETS["base"], **kw)
+            dr.eval(base, e_b)
+            shx, e_x = trace_shifted(scene, offset=OFFSETS["dx"], **kw)
+            dr.eval(shx, e_x)
+            shy, e_y = trace_shifted(scene, offset=OFFSETS["dy"], **kw)
+            dr.eval(shy, e_y)
             # Guard: a non-finite sample (a 0/0 in a BSDF or a degenerate frame) would poison its
             # pixel and the differences it enters: a non-finite base sample is set to 0, and a pair
             # with a non-finite member contributes a difference of 0. Such lanes are counted.
             ok_b = finite(base)
             ok_x, ok_y = ok_b & finite(shx), ok_b & finite(shy)
             n_invalid += int(dr.count(~(ok_x & ok_y))[0])
-            add({"base": dr.select(ok_b, base, 0.0), "dx": dr.select(ok_x, shx - base, 0.0),
-                 "dy": dr.select(ok_y, shy - base, 0.0)}, n)
-            del base, shx, shy
+            vals = {"base": dr.select(ok_b, base, 0.0)}
+            if separate:
+                vals.update(dx=dr.select(ok_x, (shx - e_x) - (base - e_b), 0.0),
+                            dy=dr.select(ok_y, (shy - e_y) - (base - e_b), 0.0), emission=dr.select(ok_b, e_b, 0.0))
+            else:
+                vals.update(dx=dr.select(ok_x, shx - base, 0.0), dy=dr.select(ok_y, shy - base, 0.0))
+            add(vals, n)
+            del base, shx, shy, e_b, e_x, e_y, vals
         else:
-            out = trace_reconnect(scene, shift=shift_settings, **kw)
+            out = trace_reconnect(scene, shift=shift_settings, separate_emission=separate, **kw)
             dr.eval(out)
             ok_b = finite(out["color"])
             ok_g = mi.Bool(ok_b)
@@ -294,6 +315,8 @@ def render_gradients(
                 vals[f"s{j}"] = dr.select(ok_g, out["shifted"][j], 0.0)
                 own += dr.select(ok_g & inside, out["main"][j], 0.0)
             vals["own"] = own
+            if separate:
+                vals["emission"] = dr.select(ok_b, out["emission"], 0.0)
             add(vals, n)
             flags = np.asarray(out["flags"], dtype=np.uint32)
             for b in range(3):
@@ -352,11 +375,13 @@ def render_gradients(
         total = len(NEIGHBOURS) * npix * int(spp)
         out["shift_stats"] = {"offset_paths": total, "reconnected": float(flag_counts[0] / total),
                               "half_vector": float(flag_counts[1] / total), "failed": float(flag_counts[2] / total)}
+    if separate:
+        out["emission"], out["emission_var"] = mean_var("emission")
     for key in list(out):
         if isinstance(out[key], np.ndarray):
             out[key] = out[key].astype(np.float32)
     if spp == 1:
-        for key in ("primal_var", "dx_var", "dy_var"):
+        for key in ("primal_var", "dx_var", "dy_var", "emission_var"):
             out.pop(key, None)
     # Border convention: I[y, W] and I[H, x] lie outside the image, so these differences are 0.
     for key in ("dx", "dx_var"):

@@ -46,6 +46,10 @@ FEATURE_DIMS: dict[str, int] = {
     "albedo": 3, "albedo2": 3, "normal": 3, "position": 3, "depth": 1, "visibility": 1, "roughness": 1,
 }
 FEATURES: tuple[str, ...] = tuple(FEATURE_DIMS)
+# `trace(record={EMISSION})`: what a surface emitter seen directly gives the sample (its camera ray's first
+# hit emits toward the camera: the depth-0 term of its radiance where that ray hits a shape; an environment
+# seen directly is not counted), which gradient-domain frames keep out of dx, dy.
+EMISSION = "emission"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -150,7 +154,10 @@ def mis_weight(pdf_a, pdf_b):
 def trace(scene, sampler, ray, active, *, settings: PathSettings, record: frozenset[str],
           roughness: RoughnessLookup | None = None) -> dict:
     """Trace one path per lane of ``ray``; returns ``{"color": Spectrum, <feature>: value, ...}``
-    for the features in ``record`` (values per sample, 0 where undefined; see module docstring).
+    for the features in ``record`` (values per sample, 0 where undefined; see module docstring),
+    ``vertices`` (the path's vertex count) and, when ``record`` holds `EMISSION`, ``emission``: the part
+    of ``color`` that the camera ray's first hit emits where it hits a shape (a Spectrum; 0 where it hits
+    no emitter or nothing: an environment seen directly is not counted).
 
     Which features are recorded is static (a Python set), so a feature left out costs nothing.
     """
@@ -168,6 +175,8 @@ def trace(scene, sampler, ray, active, *, settings: PathSettings, record: frozen
     for f in FEATURES:
         if want[f]:
             feats[f] = mi.Color3f(0.0) if FEATURE_DIMS[f] == 3 else Float(0.0)
+    if EMISSION in record:
+        feats[EMISSION] = mi.Spectrum(0.0)
     state = dict(
         ray=mi.Ray3f(ray), depth=mi.UInt32(0), L=mi.Spectrum(0.0), beta=mi.Spectrum(1.0), eta=Float(1.0),
         active=mi.Bool(active), prev_si=dr.zeros(mi.SurfaceInteraction3f), prev_pdf=Float(1.0),
@@ -191,15 +200,19 @@ def trace(scene, sampler, ray, active, *, settings: PathSettings, record: frozen
         if vec:
             em_pdf = scene.pdf_emitter_direction(s["prev_si"], ds, active & _not(s["prev_delta"]))
             mis_bsdf = dr.select(s["prev_delta"], 1.0, mis_weight(s["prev_pdf"], em_pdf))
-            L = s["L"] + dr.select(active, s["beta"] * mis_bsdf * ds.emitter.eval(si, active), 0.0)
+            emitted = dr.select(active, s["beta"] * mis_bsdf * ds.emitter.eval(si, active), 0.0)
+            L = s["L"] + emitted
         else:
             # Scalar variant: masks do not protect null pointers (no emitter hit, no surface), so the
             # same estimator is written with Python branches.
-            L = s["L"]
+            emitted = mi.Spectrum(0.0)
             if active and ds.emitter is not None:
                 mis_bsdf = 1.0 if s["prev_delta"] else mis_weight(
                     s["prev_pdf"], scene.pdf_emitter_direction(s["prev_si"], ds, True))
-                L = L + s["beta"] * mis_bsdf * ds.emitter.eval(si, True)
+                emitted = s["beta"] * mis_bsdf * ds.emitter.eval(si, True)
+            L = s["L"] + emitted
+            if EMISSION in record and depth == 0 and valid:
+                s = dict(s, feats=dict(s["feats"], **{EMISSION: emitted}))
             if not (active and valid):
                 return dict(s, L=L, active=False, found2=s["found2"] or (active and s["found"]))
 
@@ -221,6 +234,8 @@ def trace(scene, sampler, ray, active, *, settings: PathSettings, record: frozen
 
         # Features.
         f = dict(s["feats"])
+        if vec and EMISSION in record:
+            f[EMISSION] = dr.select((depth == 0) & valid, emitted, f[EMISSION])
         found, found2 = s["found"], s["found2"]
         if want["depth"]:
             f["depth"] = dr.select(active & (depth == 0) & valid, si.t, f["depth"])

@@ -33,6 +33,7 @@ def render_job(job: dict) -> tuple[str, dict]:
     common = dict(spp=job["spp"], ref_spp=job["ref_spp"], instances=job["instances"], buffers=job["buffers"],
                   methods=job["methods"], max_depth=job["max_depth"], progress=job["progress"],
                   samples_per_pass=job["samples_per_pass"], shift=job.get("shift"), primal=job.get("primal", "base"),
+                  gradient_emission=job.get("gradient_emission", "separate"),
                   seed=job["scene_seed"], **size)
     if job.get("frames"):  # a camera fly-through: DIR/scene_XXXX/frame_XXXX/ (Chaitanya 2017 Sec. 4.3)
         from .sequences import render_sequence

@@ -21,10 +21,9 @@ from .integrator import FEATURES, PathSettings, derive_seed
 from .mitsuba_setup import RenderTimer
 from .render import DEFAULT_SAMPLES_PER_PASS, camera_matrices, film_size, render_buffers, render_reference
 from .scenes import describe, load_scene
-from jaxdenoise.buffers import SAMPLE_COUNT_FIELD
+from jaxdenoise.buffers import EMISSION_FIELD, GRADIENT_FIELDS, SAMPLE_COUNT_FIELD
 from jaxdenoise.errors import JaxdenoiseError
 
-GRADIENT_FIELDS = ("dx", "dy")
 # What a gradient frame's ``seconds`` covers (written into its manifest entry).
 GRADIENT_TIME_NOTE = ("seconds = buffer render + gradient render (gradient_seconds), Dr.Jit compilation excluded "
                       "(compile_seconds); the gradient render traces the base paths again (bit-identical to the "
@@ -77,8 +76,9 @@ def plan_buffers(desc: dict, settings: PathSettings, requested: frozenset[str] |
         invariant["visibility"] = f"max_depth={settings.max_depth} < 2: no shadow rays"
     if len(desc["roughness_values"]) <= 1:
         invariant["roughness"] = f"every BSDF has the same roughness {desc['roughness_values']}: a constant buffer"
-    # the per-pixel sample count is written by adaptive renders only (`data_gen.adaptive`)
-    candidates = [f for f in IMAGE_FIELDS if f != SAMPLE_COUNT_FIELD]
+    # the per-pixel sample count is written by adaptive renders only (`data_gen.adaptive`), the emission
+    # beside the gradients that leave it out (`render_shot`'s gradient_emission)
+    candidates = [f for f in IMAGE_FIELDS if f not in (SAMPLE_COUNT_FIELD, EMISSION_FIELD)]
     left: dict[str, str] = {}
     fields: list[str] = []
     for f in candidates:
@@ -160,7 +160,7 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
                 max_depth: int = 8, rr_depth: int = 5, seed: int = 0, progress: bool = True,
                 samples_per_pass: int = DEFAULT_SAMPLES_PER_PASS, width: int | None = None,
                 height: int | None = None, shift: str | None = None, primal: str = "base",
-                label: str | None = None, adaptive: str | None = None, passes: int = 1,
+                gradient_emission: str = "separate", label: str | None = None, adaptive: str | None = None, passes: int = 1,
                 initial_spp: int | None = None, _stop_after: int | None = None) -> dict:
     """Render noisy frames at every ``spp`` (``instances`` independent realizations each) and a
     ``ref_spp`` reference into ``out_dir``; return the shot's manifest record (also in ``shot.json``).
@@ -170,7 +170,9 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
     ``ref_spp=0`` skips the reference. Finished files are skipped (resumable).
     ``shift`` (``replay`` or ``reconnect``; None = `data_gen.gradient.DEFAULT_SHIFT`) and ``primal``
     (``base`` or ``gpt``: the colour of gradient frames is then the G-PT primal) apply to frames with
-    gradient buffers (`data_gen.gradient.render_gradients`). ``label``: the scene's name in the record
+    gradient buffers (`data_gen.gradient.render_gradients`), and so does ``gradient_emission``
+    (``separate``: the directly seen emission is kept out of dx, dy and written as the ``emission``
+    layer, the header's ``gradient_emission`` says so; ``included``: in the gradients). ``label``: the scene's name in the record
     and the resume keys (default: the XML path as given, a dict's ``__name__``, ``library:<name>@<digest>``
     for a library scene, ``mitsuba.Scene`` for a loaded scene).
     ``adaptive`` (`data_gen.adaptive.parse_spec`: ``relvar``, ``METHOD``, ``METHOD:relvar|halves``)
@@ -190,7 +192,7 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
         raise JaxdenoiseError(f"instances must be an int >= 1, got {instances!r}")
     if ref_spp and ref_spp < 2:
         raise JaxdenoiseError(f"ref_spp must be 0 (no reference) or >= 2, got {ref_spp}")
-    shift = _check_shift(shift, primal)
+    shift = _check_shift(shift, primal, gradient_emission)
     settings = PathSettings(max_depth=int(max_depth), rr_depth=int(rr_depth))
     label = _scene_label(scene) if label is None else str(label)
     spec = _check_adaptive(adaptive, spp, passes, initial_spp)
@@ -218,7 +220,10 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
                 if spec is not None:
                     raise JaxdenoiseError("adaptive sampling renders no gradient buffers (dx, dy); request methods "
                                           "or buffers without them, or sample uniformly")
-                key.update(shift=shift, primal=primal)
+                key.update(shift=shift, primal=primal, gradient_emission=gradient_emission)
+                if gradient_emission == "separate":
+                    fields = fields + [EMISSION_FIELD]
+                    key.update(fields=fields)
             if spec is not None:
                 fields = fields + [SAMPLE_COUNT_FIELD]
                 key.update(fields=fields, adaptive=spec.label, passes=int(passes), initial_spp=initial_spp)
@@ -266,14 +271,14 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
                     grad_seconds, stats = 0.0, None
                 else:
                     data, seconds, compile_seconds, grad_seconds, stats = _noisy_frame(
-                        loaded, s, fseed, settings, fields, samples_per_pass, shift, primal, tick)
+                        loaded, s, fseed, settings, fields, samples_per_pass, shift, primal, gradient_emission, tick)
                 bufs = Buffers(**{f: data[f] for f in fields if f in data}, spp=s, **camera)
                 attrs = _attrs(base_key, s, inst, seconds)
                 if spec is not None:
                     attrs.update(adaptive=spec.label, adaptive_passes=int(passes),
                                  adaptive_pilot_spp=int(adaptive_info["pilot_spp"]))
                 if grad_seconds:
-                    attrs.update(gradient_shift=shift, primal=primal)
+                    attrs.update(gradient_shift=shift, primal=primal, gradient_emission=gradient_emission)
                 write_buffers(out_dir / name, bufs, attrs)
                 dsha = data_sha256({f: data[f] for f in fields if f in data})
                 key = dict(key)
@@ -310,7 +315,8 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
 def render_frame(scene: Any, *, spp: int = 4, methods: Iterable[str] | None = None,
                  buffers: Iterable[str] | None = None, seed: int = 0, instance: int = 0, max_depth: int = 8,
                  rr_depth: int = 5, width: int | None = None, height: int | None = None, shift: str | None = None,
-                 primal: str = "base", samples_per_pass: int = DEFAULT_SAMPLES_PER_PASS):
+                 primal: str = "base", gradient_emission: str = "separate",
+                 samples_per_pass: int = DEFAULT_SAMPLES_PER_PASS):
     """One noisy frame rendered into memory as `jaxdenoise.Buffers`, no file written: the frame
     `render_shot` (same arguments) writes to ``spp{spp:04d}_{instance:02d}.exr``, the same samples
     (its seed is derived the same way) and the same buffers (``methods``' ``needs()``, or ``buffers``,
@@ -323,13 +329,15 @@ def render_frame(scene: Any, *, spp: int = 4, methods: Iterable[str] | None = No
         raise JaxdenoiseError(f"spp must be an int >= 1, got {spp!r}")
     if isinstance(instance, bool) or not isinstance(instance, (int, np.integer)) or instance < 0:
         raise JaxdenoiseError(f"instance must be an int >= 0, got {instance!r}")
-    shift = _check_shift(shift, primal)
+    shift = _check_shift(shift, primal, gradient_emission)
     settings = PathSettings(max_depth=int(max_depth), rr_depth=int(rr_depth))
     loaded = load_scene(scene, width=width, height=height)
     camera = {k: v for k, v in camera_matrices(loaded).items() if v is not None}
     fields, _ = plan_buffers(describe(loaded), settings, requested_fields(methods, buffers), int(spp))
+    if gradient_emission == "separate" and any(f in fields for f in GRADIENT_FIELDS):
+        fields = fields + [EMISSION_FIELD]
     data = _noisy_frame(loaded, int(spp), derive_seed(seed, "noisy", int(spp), int(instance)), settings, fields,
-                        samples_per_pass, shift, primal, None)[0]
+                        samples_per_pass, shift, primal, gradient_emission, None)[0]
     return Buffers(**{f: data[f] for f in fields if f in data}, spp=int(spp), **camera)
 
 
@@ -370,10 +378,13 @@ def _adaptive_frame(loaded, spp, fseed, settings, fields, samples_per_pass, spec
     return data, info["render_seconds"] + info["map_seconds"], info["compile_seconds"], info
 
 
-def _check_shift(shift: str | None, primal: str) -> str:
-    """The gradient shift to use (the default for None), with ``primal`` checked against it."""
-    from .gradient import DEFAULT_SHIFT, PRIMALS, SHIFTS
+def _check_shift(shift: str | None, primal: str, gradient_emission: str = "separate") -> str:
+    """The gradient shift to use (the default for None), with ``primal`` checked against it and
+    ``gradient_emission`` against `data_gen.gradient.DIRECT_EMISSION`."""
+    from .gradient import DEFAULT_SHIFT, DIRECT_EMISSION, PRIMALS, SHIFTS
 
+    if gradient_emission not in DIRECT_EMISSION:
+        raise JaxdenoiseError(f"gradient_emission: expected one of {DIRECT_EMISSION}, got {gradient_emission!r}")
     shift = DEFAULT_SHIFT if shift is None else shift
     if shift not in SHIFTS:
         raise JaxdenoiseError(f"shift: expected one of {SHIFTS}, got {shift!r}")
@@ -382,7 +393,7 @@ def _check_shift(shift: str | None, primal: str) -> str:
     return shift
 
 
-def _noisy_frame(loaded, spp, fseed, settings, fields, samples_per_pass, shift, primal, tick):
+def _noisy_frame(loaded, spp, fseed, settings, fields, samples_per_pass, shift, primal, gradient_emission, tick):
     """(buffers dict, seconds, compile seconds, gradient seconds, shift statistics) of one noisy frame."""
     record_feats = [f for f in FEATURES if f in fields or f"{f}_var" in fields]
     with RenderTimer() as timer:
@@ -392,7 +403,8 @@ def _noisy_frame(loaded, spp, fseed, settings, fields, samples_per_pass, shift, 
     grad_seconds, stats = 0.0, None
     if any(f in fields for f in GRADIENT_FIELDS):
         with RenderTimer() as timer:
-            grads, stats = _gradients(loaded, spp, fseed, settings, samples_per_pass, shift, primal)
+            grads, stats = _gradients(loaded, spp, fseed, settings, samples_per_pass, shift, primal,
+                                      gradient_emission)
             data.update(grads)
         grad_seconds = timer.seconds
         seconds += grad_seconds
@@ -400,8 +412,10 @@ def _noisy_frame(loaded, spp, fseed, settings, fields, samples_per_pass, shift, 
     return data, seconds, compile_seconds, grad_seconds, stats
 
 
-def _gradients(scene, spp, seed, settings, samples_per_pass, shift, primal) -> tuple[dict, dict | None]:
-    """dx, dy (and, with ``primal="gpt"``, the colour) of a gradient frame; the shift statistics."""
+def _gradients(scene, spp, seed, settings, samples_per_pass, shift, primal,
+               gradient_emission) -> tuple[dict, dict | None]:
+    """dx, dy (with ``gradient_emission="separate"`` the emission they leave out, with
+    ``primal="gpt"`` the colour) of a gradient frame; the shift statistics."""
     try:
         from . import gradient
     except ImportError as exc:
@@ -410,9 +424,9 @@ def _gradients(scene, spp, seed, settings, samples_per_pass, shift, primal) -> t
             f"({exc}); request methods/buffers without dx/dy") from None
     out = gradient.render_gradients(scene, spp=spp, seed=seed, max_depth=settings.max_depth,
                                      rr_depth=settings.rr_depth, samples_per_pass=samples_per_pass,
-                                     shift=shift, primal=primal)
-    # dx_var / dy_var have no channels in the EXR contract (jaxdenoise.buffers.CHANNELS): not written.
-    data = {k: np.asarray(out[k], np.float32) for k in ("dx", "dy")}
+                                     shift=shift, primal=primal, direct_emission=gradient_emission)
+    # dx_var / dy_var / emission_var have no channels in the EXR contract (jaxdenoise.buffers.CHANNELS).
+    data = {k: np.asarray(out[k], np.float32) for k in ("dx", "dy", EMISSION_FIELD) if k in out}
     if primal == "gpt":
         data["color"] = np.asarray(out["primal"], np.float32)
         if "primal_var" in out:

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common import num, write_study
+from common import heldout_scenes, num, write_study
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "docs" / "results" / "adaptive"
@@ -38,18 +38,6 @@ SPECS = ("relvar", "oidn:halves", "demc:halves", "demc:relvar")
 UNIFORM = (2, 4, 8, 16, 32, 64, 128)
 COST = {True: "cost-aware maps (a pixel's share divided by its pilot samples' mean path length)",
         False: "maps by error alone (not cost-aware)"}
-
-
-def _scenes(n_proc: int, n_lib: int, width: int):
-    from data_gen import library
-    from data_gen.scenes import build_scene
-
-    out = [(f"mixed@{100000 + k}", build_scene("mixed", 100000 + k, width=width, height=width), None, None,
-            100000 + k) for k in range(n_proc)]
-    for k, name in enumerate(library.scene_names("eval")[:n_lib]):
-        w, h = library.film_size(name, width, None)
-        out.append((f"library:{name}", f"library:{name}", w, h, 500000 + k))
-    return out
 
 
 def _denoisers():
@@ -89,7 +77,7 @@ def run(args) -> dict:
     budgets = [int(b) for b in args.budgets.split(",")]
     specs = args.specs.split(",")
     scenes = []
-    for label, scene, w, h, seed in _scenes(args.procedural, args.library, args.width):
+    for label, scene, w, h, seed in heldout_scenes(args.procedural, args.library, args.width):
         t_scene = time.perf_counter()
         loaded = load_scene(scene, width=w, height=h)
         camera = {k: v for k, v in camera_matrices(loaded).items() if v is not None}

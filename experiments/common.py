@@ -74,6 +74,23 @@ def num(value, spec: str = ".4g") -> str:
     return format(value, spec)
 
 
+def heldout_scenes(n_proc: int, n_lib: int, width: int) -> list[tuple]:
+    """Scenes no network here trained on: ``n_proc`` held-out draws of the procedural families
+    (``mixed``, seeds 100000+, the generator and seeds of ``data/heldout``) at ``width`` x ``width``
+    and the first ``n_lib`` scenes of the scene library's evaluation split, ``width`` wide. Each is
+    ``(label, scene, width, height, seed)``: a scene dict (its size set, ``width``/``height`` None) or
+    ``library:NAME`` (for `data_gen.scenes.load_scene` with that size), and a seed of its own."""
+    from data_gen import library
+    from data_gen.scenes import build_scene
+
+    out = [(f"mixed@{100000 + k}", build_scene("mixed", 100000 + k, width=width, height=width), None, None,
+            100000 + k) for k in range(n_proc)]
+    for k, name in enumerate(library.scene_names("eval")[:n_lib]):
+        w, h = library.film_size(name, width, None)
+        out.append((f"library:{name}", f"library:{name}", w, h, 500000 + k))
+    return out
+
+
 def all_measured(res: dict, name: str) -> None:
     """Raise when the result ``res`` (of the JSON ``name``) holds a NaN or an infinity anywhere: a
     value that was not measured, which a page must not print."""

@@ -49,7 +49,7 @@ import numpy as np
 from . import metrics
 from .api import resolve
 from .inference import buffers_read, inference_fn, nonnegative, notes, prepare
-from .buffers import Buffers
+from .buffers import EMISSION_FIELD, GRADIENT_FIELDS, Buffers
 from .data import Render, Shot, discover, sequences
 from .fsutil import atomic_path, write_json, write_text
 from .io import read_buffers, read_image
@@ -58,7 +58,8 @@ from .viewer import ImageStore, write_viewer
 from .errors import JaxdenoiseError
 
 MIN_RUNS = 5
-GRADIENT_BUFFERS = frozenset({"dx", "dy"})  # what the gradient pass of a frame makes
+# what the gradient pass of a frame makes (dx, dy and the emission they leave out)
+GRADIENT_BUFFERS = frozenset(GRADIENT_FIELDS) | {EMISSION_FIELD}
 
 
 def charged_render_seconds(render: Render, read: Iterable[str]) -> float | None:

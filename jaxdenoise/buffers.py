@@ -35,6 +35,7 @@ CHANNELS: dict[str, tuple[str, ...]] = {
     "roughness_var": ("rough.var",),
     "dx": ("dx.R", "dx.G", "dx.B"),
     "dy": ("dy.R", "dy.G", "dy.B"),
+    "emission": ("emission.R", "emission.G", "emission.B"),
     "spp_map": ("spp",),
 }
 IMAGE_FIELDS: tuple[str, ...] = tuple(CHANNELS)
@@ -49,6 +50,11 @@ ALL_FIELDS: tuple[str, ...] = IMAGE_FIELDS + METADATA_FIELDS
 # The per-pixel sample count of an adaptively sampled frame (EXR layer ``spp``; the header's ``spp`` is
 # its mean). Like the header's count it travels with the frame: `Buffers.only` never drops it.
 SAMPLE_COUNT_FIELD = "spp_map"
+# The directly seen emission that a gradient frame's ``dx``/``dy`` leave out (Kettunen et al. 2015's tracer;
+# `data_gen.gradient.render_gradients`): present exactly when they do, so it travels with them (`Buffers.only`)
+# and every reconstruction from them solves for ``color - emission`` and adds it back.
+EMISSION_FIELD = "emission"
+GRADIENT_FIELDS: tuple[str, ...] = ("dx", "dy")
 # The OpenEXR standard header attribute that carries each matrix (`jaxdenoise.io` reads and writes them).
 MATRIX_HEADERS: dict[str, str] = {"world_to_camera": "worldToCamera", "world_to_ndc": "worldToNDC"}
 
@@ -65,7 +71,9 @@ class Buffers:
     ``color_var`` (variance of the pixel mean), ``albedo`` / ``albedo2`` (first / second non-specular
     hit texture value), ``normal`` (world-space shading normal in [-1, 1]), ``position`` (world),
     ``depth`` (camera distance), ``visibility`` (direct-light visibility fraction), ``roughness``,
-    ``dx`` / ``dy`` (``I[y, x+1] - I[y, x]`` and ``I[y+1, x] - I[y, x]``), ``<feature>_var`` (one
+    ``dx`` / ``dy`` (``I[y, x+1] - I[y, x]`` and ``I[y+1, x] - I[y, x]``), ``emission`` (the directly
+    seen emission, part of ``color``, where ``dx``/``dy`` leave it out: they are then the differences of
+    ``color - emission``), ``<feature>_var`` (one
     channel, variance of the feature's pixel mean), ``spp_map`` (one channel, the samples each pixel
     got where sampling was adaptive, `data_gen.adaptive`; None where every pixel got ``spp``) and the
     frame's metadata: ``spp`` (samples per pixel, scalar or one per frame; the mean of ``spp_map``),
@@ -92,6 +100,7 @@ class Buffers:
     roughness_var: Any = None
     dx: Any = None
     dy: Any = None
+    emission: Any = None
     spp_map: Any = None
     spp: Any = None
     world_to_camera: Any = None
@@ -191,8 +200,11 @@ class Buffers:
 
     def only(self, names: Iterable[str]) -> "Buffers":
         """A copy keeping ``color``, the given buffers and the frame's sample counts and metadata
-        (``spp``, ``spp_map``: never dropped, whatever ``names`` says), every other buffer set to ``None``."""
+        (``spp``, ``spp_map``: never dropped, whatever ``names`` says), with ``dx``/``dy`` the
+        ``emission`` they leave out, every other buffer set to ``None``."""
         keep = set(names) | {"color", SAMPLE_COUNT_FIELD} | set(METADATA_FIELDS)
+        if keep & set(GRADIENT_FIELDS):
+            keep.add(EMISSION_FIELD)
         return Buffers(**{f: (getattr(self, f) if f in keep else None) for f in ALL_FIELDS})
 
     def astype(self, dtype: Any) -> "Buffers":

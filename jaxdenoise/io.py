@@ -36,7 +36,7 @@ REPAIR_POLICY = (
     "pixels per channel are returned in attrs['repaired'] and a RuntimeWarning is issued.")
 
 # Channels that must not be negative: radiance and all variances.
-_NONNEGATIVE = {"color", "color_var", "spp_map"} | {f for f in IMAGE_FIELDS if f.endswith("_var")}
+_NONNEGATIVE = {"color", "color_var", "emission", "spp_map"} | {f for f in IMAGE_FIELDS if f.endswith("_var")}
 # EXR attributes OpenImageIO adds on its own; not renderer settings.
 _HOUSEKEEPING_PREFIXES = ("oiio:", "openexr:", "compression", "PixelAspectRatio", "screenWindow",
                           "DateTime", "Software")
@@ -363,6 +363,7 @@ def _from_channels(path, chans: dict, attrs: dict, *, repair, required, channels
         attrs.setdefault("spp", int(spp))
     if attrs.get("spp") is not None:
         fields["spp"] = np.float32(attrs["spp"])
+    _check_gradient_emission(path, fields, attrs)
     for field in EXR_MATRICES:
         m = _read_matrix(path, attrs, field) if file is not None else attrs.get(field)
         if m is not None:
@@ -393,6 +394,24 @@ def _from_channels(path, chans: dict, attrs: dict, *, repair, required, channels
     except BuffersError as e:
         raise ExrError(str(e)) from None
     return buffers, attrs
+
+
+def _check_gradient_emission(path, fields: dict, attrs: Mapping[str, Any]) -> None:
+    """The header's ``gradient_emission`` (how ``dx``/``dy`` were made, data_gen writes it) against the
+    channels: ``separate`` needs the ``emission`` layer beside the gradients, ``included`` (or a frame
+    from before the attribute, which has none) must not have one."""
+    how = attrs.get("gradient_emission")
+    if how is None:
+        return
+    if how not in ("separate", "included"):
+        raise ExrError(f"{path}: header attribute 'gradient_emission' is {how!r}; expected 'separate' or 'included'")
+    grads = "dx" in fields or "dy" in fields
+    if how == "separate" and grads and "emission" not in fields:
+        raise ExrError(f"{path}: the header says gradient_emission='separate' (dx, dy leave the directly seen "
+                       f"emission out) but the channels {', '.join(CHANNELS['emission'])} are missing")
+    if how == "included" and "emission" in fields:
+        raise ExrError(f"{path}: the header says gradient_emission='included' (dx, dy hold the directly seen "
+                       f"emission) but the frame has an emission layer; one of them is wrong")
 
 
 def read_image(path: str | os.PathLike, *, repair: str | None = None) -> np.ndarray:

@@ -77,11 +77,10 @@ __all__ = ["build_cache", "Cache", "ExportedCache", "load_export", "open_trainin
            "carried_stat", "carried_stats", "RADIANCE", "BOUNDED", "STAT"]
 
 # Fields that scale with radiance (colour modulation multiplies them by m; variances by m^2).
-RADIANCE = ("color", "dx", "dy", "reference")
+RADIANCE = ("color", "dx", "dy", "emission", "reference")
 # Bounded features stored as 8 bits in an export (value range).
 BOUNDED = {"normal": (-1.0, 1.0), "albedo": (0.0, 1.0), "albedo2": (0.0, 1.0), "visibility": (0.0, 1.0),
            "roughness": (0.0, 1.0)}
-GRADIENTS = ("dx", "dy")
 # View-space vectors (x right, y up in the image): a quarter turn of the image turns their (x, y)
 # with it and a mirror negates x. Derived fields that methods add before augmenting (`jaxdenoise.view`).
 VIEW_VECTORS = ("normal_view",)
@@ -690,7 +689,9 @@ def open_training_data(source: str | os.PathLike, fields: Sequence[str], *, spps
         if not source.is_file():
             raise FileNotFoundError(f"{source}: no such export file")
         ex = load_export(source)
-        missing = [f for f in ["color", *fields, *(["reference"] if reference else [])] if f not in ex.items]
+        # a field the method fills with a constant where a render lacks it may be absent from an export too
+        missing = [f for f in ["color", *fields, *(["reference"] if reference else [])]
+                   if f not in ex.items and f not in (fill or {})]
         if missing:
             raise JaxdenoiseError(f"{source}: the export lacks {missing} (it holds {sorted(ex.items)})")
         lacking = [n for n in (stats or ()) if n not in ex.stats]

@@ -736,6 +736,7 @@ STUDIES: dict[str, tuple[str, str]] = {
     "inverse_rendering/inverse_rendering.md": ("inverse_rendering", "inverse_rendering/inverse_rendering.json"),
     "adaptive/adaptive.md": ("adaptive", "adaptive/adaptive.json"),
     "adaptive/variants.md": ("adaptive_variants", "adaptive/variants.json"),
+    "gradient_emission/gradient_emission.md": ("gradient_emission", "gradient_emission/gradient_emission.json"),
 }
 
 # Pages written by hand that state no measured number of their own (they point to the pages above).

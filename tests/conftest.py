@@ -20,9 +20,11 @@ from jaxdenoise.buffers import CHANNELS, Buffers
 
 
 def synthetic_frame(h: int = 8, w: int = 10, seed: int = 0, spp: int | None = 4,
-                    fields=tuple(f for f in CHANNELS if f != "spp_map"), camera: bool = True) -> Buffers:
+                    fields=tuple(f for f in CHANNELS if f not in ("spp_map", "emission")),
+                    camera: bool = True) -> Buffers:
     """A frame with plausible values in every requested buffer (radiance >= 0, normals unit); by
-    default every buffer of a uniformly sampled frame (no per-pixel ``spp_map``)."""
+    default every buffer of a uniformly sampled frame whose gradients hold every contribution (no
+    per-pixel ``spp_map``, no ``emission`` layer: tests/test_gradient_emission.py has those)."""
     rng = np.random.default_rng(seed)
     out = {}
     for f in fields:

@@ -214,7 +214,7 @@ def test_mean_matches_reference_difference(ball, reference):
 def test_one_sample_leaves_out_variances(ball):
     """With 1 spp the variance of the mean cannot be estimated: the *_var entries are absent."""
     g = render_gradients(ball, spp=1, seed=2)
-    assert set(g) == {"primal", "dx", "dy", "spp", "n_invalid"}
+    assert set(g) == {"primal", "dx", "dy", "emission", "spp", "n_invalid"}
     assert np.all(g["dx"][:, -1] == 0) and np.all(g["dy"][-1] == 0)
     r = render_buffers(ball, spp=1, seed=2, settings=PathSettings())
     assert np.array_equal(g["primal"], r["color"])  # tolerance: bit-identical

@@ -53,7 +53,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import nn
-from ..buffers import Buffers
+from ..buffers import EMISSION_FIELD, Buffers
 from ..color import inv_log_transform, inv_mu_law, log_transform, mu_law
 from ..filters import gaussian
 from ..errors import JaxdenoiseError
@@ -175,6 +175,15 @@ def _clean(x: jax.Array) -> jax.Array:
     return jnp.where(jnp.isfinite(x), x, 0.0)
 
 
+def emission(buffers: Any) -> jax.Array | None:
+    """The directly seen emission that the frame's ``dx``/``dy`` leave out (a `Buffers` field or a
+    batch entry; non-finite values read as 0), or None where they hold it. GradNet reconstructs
+    ``color - emission`` from them (its I_b) and adds the emission back (`apply`), as Kettunen et al.'s
+    reconstruction does; a training render without the layer is filled with 0 (`make_dataset`)."""
+    e = getattr(buffers, EMISSION_FIELD, None) if isinstance(buffers, Buffers) else buffers.get(EMISSION_FIELD)
+    return None if e is None else _clean(jnp.asarray(e, jnp.float32))
+
+
 def depth_max(depth: jax.Array) -> jax.Array:
     """The largest depth of each image ``(..., H, W, 1)`` (non-finite and negative values read as
     0): ``(..., 1)``."""
@@ -205,9 +214,14 @@ def inputs(buffers: Any, config: Config) -> dict:
     radiance clamped to 0 first), ``tdx``, ``tdy`` = T(dx), T(dy) (sign-preserving), ``feat`` (7),
     and the HDR ``base``/``dx``/``dy`` the losses compare against. The depth is scaled by the largest
     depth of a training crop's whole render where the batch carries it (``stat.depth_max``,
-    `frame_stats`), else by the array's own (at inference, the whole frame)."""
+    `frame_stats`), else by the array's own (at inference, the whole frame). Where the frame's
+    gradients leave the directly seen emission out (`emission`), I_b is ``color - emission``."""
     get = (lambda f: getattr(buffers, f)) if isinstance(buffers, Buffers) else (lambda f: buffers[f])
-    base = jnp.maximum(_clean(jnp.asarray(get("color"), jnp.float32)), 0.0)
+    base = _clean(jnp.asarray(get("color"), jnp.float32))
+    e = emission(buffers)
+    if e is not None:
+        base = base - e
+    base = jnp.maximum(base, 0.0)
     dx = _clean(jnp.asarray(get("dx"), jnp.float32))
     dy = _clean(jnp.asarray(get("dy"), jnp.float32))
     feat = features(*(jnp.asarray(get(f), jnp.float32) for f in FEATURES), carried_stat(buffers, "depth_max"))
@@ -372,7 +386,8 @@ def _run(params: dict, buffers: Any, config: Config, post: bool) -> jax.Array:
     if post:
         base = nn.crop_to(x["base"], size)
         out = postprocess(out, base, config)
-    return out
+    e = emission(buffers)
+    return out if e is None else out + e
 
 
 def apply(params: dict, buffers: Buffers, config: Config) -> jax.Array:
@@ -482,7 +497,8 @@ def loss(params: dict, batch: dict, config: Config, group: str | None = None):
 def is_illegal(render: dict) -> bool:
     """Whether a training render holds an illegal value: NaN/Inf anywhere in the fields GradNet reads,
     or negative base radiance (gradients are signed) (Sec. 5.1, footnote 1)."""
-    vals = np.concatenate([np.asarray(render[f]) for f in ("color", "dx", "dy", *FEATURES)], -1)
+    vals = np.concatenate([np.asarray(render[f]) for f in ("color", "dx", "dy", *FEATURES, EMISSION_FIELD)
+                           if f in render], -1)
     return bool(not np.all(np.isfinite(vals)) or np.any(np.asarray(render["color"]) < 0))
 
 
@@ -494,8 +510,11 @@ def make_dataset(data_dir, config: Config, *, progress: bool = True):
     counted, ``dataset.dropped``). The references the folder contract carries are never read."""
     from ..pipeline import open_training_data
 
-    ds = open_training_data(data_dir, ("dx", "dy", *FEATURES), spps=config.train_spps, progress=progress,
-                            reference=False, repair="zero", stats=frame_stats(config))
+    # A render whose gradients hold the directly seen emission (before data_gen 0.7.0) reads as one with
+    # an emission layer of 0: the same I_b and gradients.
+    ds = open_training_data(data_dir, ("dx", "dy", *FEATURES, EMISSION_FIELD), spps=config.train_spps,
+                            progress=progress, reference=False, repair="zero", stats=frame_stats(config),
+                            fill={EMISSION_FIELD: 0.0})
     spps = {float(s) for s in config.train_spps}
     frames = getattr(ds, "frames", None)  # a cache counts the values it had to zero (a folder's illegal renders)
     pool, keep = [], []
@@ -522,6 +541,6 @@ def batch(dataset, step: int, config: Config, rng: np.random.Generator) -> dict:
     pipeline's augmentations keep dx, dy consistent), without the reference, with the per-frame
     statistics of each crop's whole render (`frame_stats`), and Eq. 14's lambda."""
     b = dataset.crops(config.train_batch, config.train_crop, rng, spps=config.train_spps)
-    out = {**{k: b[k] for k in ("color", "dx", "dy", *FEATURES)}, **carried_stats(b)}
+    out = {**{k: b[k] for k in ("color", "dx", "dy", *FEATURES, EMISSION_FIELD) if k in b}, **carried_stats(b)}
     out["lambda"] = np.float32(lambda_at(step, config))
     return out

@@ -65,8 +65,17 @@ def _solve(base, dx, dy, config: Config):
     return _sp.poisson_l1_admm(base, dx, dy, config.alpha, iters=config.admm_iters)
 
 
+def _frame(b: Buffers, config: Config):
+    # Where dx, dy leave the directly seen emission out (Kettunen et al. 2015's tracer), the solve is
+    # for ``color - emission`` and the emission is added back.
+    if b.emission is None:
+        return _solve(b.color, b.dx, b.dy, config)
+    return _solve(b.color - b.emission, b.dx, b.dy, config) + b.emission
+
+
 def apply(params: dict, buffers: Buffers, config: Config):
     """Reconstruct from ``color`` (the base image) and ``dx``/``dy``; a batch (leading axes) of
-    independent frames is solved frame by frame."""
+    independent frames is solved frame by frame. A frame with an ``emission`` layer (its gradients
+    leave the directly seen emission out) is solved for ``color - emission``, which is added back."""
     buffers.check_needs(needs(config), "poisson-" + config.norm)
-    return map_frames(lambda b: _solve(b.color, b.dx, b.dy, config), buffers)
+    return map_frames(lambda b: _frame(b, config), buffers)

@@ -692,6 +692,7 @@ def check_solver(name: str, case: Case, alpha: float, *, gradients: str = "rende
 
 def _all_fields_present() -> bool:
     """Every case carries every buffer of a uniformly sampled frame (so a method's ``needs`` decides
-    what it reads); the per-pixel ``spp_map`` belongs to adaptive frames only."""
+    what it reads); the per-pixel ``spp_map`` belongs to adaptive frames only, the ``emission`` layer to
+    gradient frames that leave it out of dx, dy (tests/test_gradient_emission.py)."""
     d, _ = CASES[0].arrays()
-    return set(d) | {"spp"} | set(CAMERA) == set(ALL_FIELDS) - {"spp_map"}
+    return set(d) | {"spp"} | set(CAMERA) == set(ALL_FIELDS) - {"spp_map", "emission"}
