@@ -20,6 +20,7 @@ from .buffers import Buffers, BuffersError
 from .errors import JaxdenoiseWarning
 from .inference import clamp_note, inference_fn, nonnegative, notes, prepare
 from .methods import Method, MethodError, get
+from .tiling import infer
 
 
 def resolve(method: str | Method, weights: str | os.PathLike | None = None) -> tuple[Method, Any]:
@@ -90,10 +91,15 @@ def choose_method(buffers: Buffers) -> str:
 
 
 def denoise(buffers: Buffers, method: str = AUTO, params: Any = None, *,
-            weights: str | os.PathLike | None = None) -> np.ndarray:
+            weights: str | os.PathLike | None = None, max_memory_mb: float | None = None,
+            tile: int | None = None) -> np.ndarray:
     """Denoise one frame (or a batch) with a registered method (default: `choose_method`'s pick for
     the frame); returns a float32 numpy image, non-negative (`inference.OUTPUT_POLICY`: a warning
-    counts the pixels set to 0)."""
+    counts the pixels set to 0).
+
+    ``max_memory_mb``: a frame whose program XLA estimates above this many MiB is denoised in the
+    largest overlapping tiles that fit (one frame; the networks only: `jaxdenoise.tiling`), like OIDN's
+    ``maxMemoryMB``; ``tile``: tiles of this side in pixels, whatever the memory."""
     if method == AUTO and isinstance(buffers, Buffers):
         method = choose_method(buffers)
     if isinstance(method, str) and params is None and weights is None:
@@ -104,7 +110,7 @@ def denoise(buffers: Buffers, method: str = AUTO, params: Any = None, *,
         m, params = resolve(method, weights)
     prepared = prepare(m, buffers)
     warn_notes(m, buffers)
-    return _finished(m, inference_fn(m)(params, prepared))
+    return _finished(m, infer(m, params, prepared, tile=tile, max_memory_mb=max_memory_mb))
 
 
 def _finished(m: Method, image: Any) -> np.ndarray:

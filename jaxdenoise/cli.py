@@ -55,13 +55,17 @@ def _cmd_denoise(args: argparse.Namespace) -> int:
     import dataclasses
 
     from .api import AUTO, choose_method, resolve
-    from .inference import clamp_note, inference_fn, nonnegative, notes, prepare
+    from .inference import clamp_note, nonnegative, notes, prepare
     from .methods import get
     from .fsutil import write_json
     from .io import read_buffers, write_output
+    from .tiling import infer
 
     t0 = time.perf_counter()
     _check_output(args)
+    if args.frames and (args.tile is not None or args.max_memory_mb is not None):
+        raise SystemExit("error: --tile / --max-memory-mb tile one frame; a sequence (--frames) runs whole frames "
+                         "through the sequence driver")
     if args.frames:
         return _denoise_frames(args, t0)
     if args.input is None:
@@ -75,7 +79,7 @@ def _cmd_denoise(args: argparse.Namespace) -> int:
     m, params = resolve(name, args.weights)
     prepared = prepare(m, buffers, where=str(inp))
     _warn(notes(m, buffers))
-    image, clamped = nonnegative(inference_fn(m)(params, prepared))
+    image, clamped = nonnegative(infer(m, params, prepared, tile=args.tile, max_memory_mb=args.max_memory_mb))
     if clamped:
         _warn([clamp_note(m.name, clamped)])
     out = write_output(args.output, image, exposure=args.exposure or 0.0,
@@ -84,6 +88,7 @@ def _cmd_denoise(args: argparse.Namespace) -> int:
     cfg_path = out.with_name(out.stem + ".config.json")
     write_json(cfg_path, {"method": m.name, "config": dataclasses.asdict(m.config), "input": str(inp),
                           "weights": args.weights, **read, "negative_clamped": clamped,
+                          "tile": args.tile, "max_memory_mb": args.max_memory_mb,
                           "exposure": args.exposure, "channels_from": attrs.get("channels_from"),
                           "input_attrs": {k: v for k, v in attrs.items() if isinstance(v, (int, float, str))}})
     print(f"denoise: {inp.name} -> {out} with {m.name} ({buffers.shape[1]}x{buffers.shape[0]}) "
@@ -239,6 +244,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--exposure", type=float,
                    help="PNG/JPEG output only: scale the radiance by 2**EXPOSURE before the sRGB curve "
                         "(stops; default 0)")
+    s.add_argument("--max-memory-mb", type=float,
+                   help="denoise a frame whose program XLA estimates above this many MiB in the largest "
+                        "overlapping tiles that fit (networks only; like OIDN's maxMemoryMB) (default: whole)")
+    s.add_argument("--tile", type=int, help="denoise in overlapping tiles of this side in pixels (networks only) "
+                                            "(default: whole, or what --max-memory-mb allows)")
     s.set_defaults(func=_cmd_denoise)
 
     s = sub.add_parser("bench", help="error against run time of methods on a data folder",

@@ -111,7 +111,9 @@ class Compiled:
         leaves, tree = jax.tree_util.tree_flatten((params, buffers))
         return tree, tuple((np.shape(x), np.dtype(getattr(x, "dtype", type(x))).str) for x in leaves)
 
-    def compile(self, params: Any, buffers: Any) -> CompileInfo:
+    def compile(self, params: Any, buffers: Any, *, check: bool = True) -> CompileInfo:
+        """Compile this input signature (once) and return what it cost; ``check=False`` returns XLA's
+        estimate of a program over the available memory instead of refusing it (`tiling.plan`)."""
         key = self._key(params, buffers)
         if key in self._cache:
             return CompileInfo(0.0, 0.0, 0.0, "memory", self._cache[key][1])
@@ -131,11 +133,12 @@ class Compiled:
         ma = exe.memory_analysis()
         need = (ma.argument_size_in_bytes + ma.output_size_in_bytes + ma.temp_size_in_bytes) if ma else None
         free = available_memory()
-        if need is not None and need > free:
+        if check and need is not None and need > free:
             shape = getattr(buffers, "shape", None)
             raise MethodError(f"method '{self.name}': this input ({shape}) needs {need / 2**30:.1f} GiB by XLA's "
                               f"estimate (arguments + outputs + temporaries), more than the {free / 2**30:.1f} GiB "
-                              f"available; denoise a smaller frame or crop, or free memory")
+                              f"available; denoise it in tiles under a memory budget (jaxdenoise.denoise(..., "
+                              f"max_memory_mb=N), CLI --max-memory-mb N), a smaller frame or crop, or free memory")
         self._cache[key] = (exe, need)
         return CompileInfo(t1 - t0, t2 - t1, t3 - t2, cache, need)
 

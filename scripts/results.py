@@ -737,6 +737,7 @@ STUDIES: dict[str, tuple[str, str]] = {
     "adaptive/adaptive.md": ("adaptive", "adaptive/adaptive.json"),
     "adaptive/variants.md": ("adaptive_variants", "adaptive/variants.json"),
     "gradient_emission/gradient_emission.md": ("gradient_emission", "gradient_emission/gradient_emission.json"),
+    "tiling/tiling.md": ("tiling", "tiling/tiling.json"),
 }
 
 # Pages written by hand that state no measured number of their own (they point to the pages above).
