@@ -42,6 +42,7 @@ from .mitsuba_setup import is_vectorized, setup_mitsuba
 from .gpt import NEIGHBOURS, ShiftSettings, trace_gpt
 from .render import DEFAULT_SAMPLES_PER_PASS, camera_ray, camera_samples
 from .scenes import load_scene
+from jaxdenoise.buffers import GRADIENT_EMISSION_MODES
 from jaxdenoise.errors import JaxdenoiseError
 
 __all__ = ["render_gradients", "trace_shifted", "trace_reconnect", "OFFSETS", "SHIFTS", "DIRECT_EMISSION"]
@@ -57,7 +58,7 @@ DEFAULT_SHIFT = "reconnect"
 # Where the directly seen emission goes (Kettunen et al. 2015's tracer: "separate", the default): kept out
 # of dx, dy and returned as an image of its own (``emission``) that a reconstruction adds back, or
 # "included" in the gradients like every other path (what data_gen did before 0.7.0).
-DIRECT_EMISSION: tuple[str, ...] = ("separate", "included")
+DIRECT_EMISSION: tuple[str, ...] = GRADIENT_EMISSION_MODES
 
 
 def _wavefront(scene, *, seed: int, n: int, width: int, height: int):

@@ -54,6 +54,9 @@ SAMPLE_COUNT_FIELD = "spp_map"
 # `data_gen.gradient.render_gradients`): present exactly when they do, so it travels with them (`Buffers.only`)
 # and every reconstruction from them solves for ``color - emission`` and adds it back.
 EMISSION_FIELD = "emission"
+# How a gradient frame's dx, dy treat that emission (the EXR header's ``gradient_emission``): left out
+# (the layer present) or included (no layer; a frame without the attribute reads so).
+GRADIENT_EMISSION_MODES: tuple[str, ...] = ("separate", "included")
 GRADIENT_FIELDS: tuple[str, ...] = ("dx", "dy")
 # The OpenEXR standard header attribute that carries each matrix (`jaxdenoise.io` reads and writes them).
 MATRIX_HEADERS: dict[str, str] = {"world_to_camera": "worldToCamera", "world_to_ndc": "worldToNDC"}

@@ -21,7 +21,8 @@ from typing import Any, Mapping
 import numpy as np
 import OpenImageIO as oiio
 
-from .buffers import CHANNELS, IMAGE_FIELDS, MATRIX_HEADERS, Buffers, BuffersError
+from .buffers import (CHANNELS, EMISSION_FIELD, GRADIENT_EMISSION_MODES, GRADIENT_FIELDS, IMAGE_FIELDS,
+                      MATRIX_HEADERS, Buffers, BuffersError)
 from .fsutil import atomic_path
 from .errors import JaxdenoiseError, JaxdenoiseWarning
 
@@ -403,13 +404,14 @@ def _check_gradient_emission(path, fields: dict, attrs: Mapping[str, Any]) -> No
     how = attrs.get("gradient_emission")
     if how is None:
         return
-    if how not in ("separate", "included"):
-        raise ExrError(f"{path}: header attribute 'gradient_emission' is {how!r}; expected 'separate' or 'included'")
-    grads = "dx" in fields or "dy" in fields
-    if how == "separate" and grads and "emission" not in fields:
+    if how not in GRADIENT_EMISSION_MODES:
+        raise ExrError(f"{path}: header attribute 'gradient_emission' is {how!r}; expected one of "
+                       f"{GRADIENT_EMISSION_MODES}")
+    grads = any(f in fields for f in GRADIENT_FIELDS)
+    if how == "separate" and grads and EMISSION_FIELD not in fields:
         raise ExrError(f"{path}: the header says gradient_emission='separate' (dx, dy leave the directly seen "
-                       f"emission out) but the channels {', '.join(CHANNELS['emission'])} are missing")
-    if how == "included" and "emission" in fields:
+                       f"emission out) but the channels {', '.join(CHANNELS[EMISSION_FIELD])} are missing")
+    if how == "included" and EMISSION_FIELD in fields:
         raise ExrError(f"{path}: the header says gradient_emission='included' (dx, dy hold the directly seen "
                        f"emission) but the frame has an emission layer; one of them is wrong")
 
