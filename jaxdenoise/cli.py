@@ -8,6 +8,7 @@ to its outputs.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from importlib.metadata import entry_points
@@ -181,13 +182,19 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 def _cmd_train(args: argparse.Namespace) -> int:
     from .methods import get
-    from .train import TrainConfig, train
+    from .train import TrainConfig, TrainError, train
 
     # Each option maps onto one TrainConfig field; options left unset keep the method's TRAIN default.
     options = {"steps": args.steps, "seed": args.seed, "resume": args.resume, "init_from": args.init,
                "val_data": args.val_data, "val_spps": args.val_spps, "validate_every": args.validate_every,
-               "ema": args.ema, "progress": not args.quiet}
+               "ema": args.ema, "select": args.select, "progress": not args.quiet}
     method = get(args.method)
+    if args.train_spps is not None:
+        if not hasattr(method.config, "train_spps"):
+            raise TrainError(f"argument --train-spps: method '{args.method}' trains at one fixed rate "
+                             "(its config has no train_spps)")
+        method = dataclasses.replace(method, config=dataclasses.replace(
+            method.config, train_spps=tuple(sorted(set(args.train_spps)))))
     summary = train(method, args.data, args.out,
                     TrainConfig.for_method(method, **{k: v for k, v in options.items() if v is not None}))
     print(summary.get("line", f"train: {args.method} done; outputs in {args.out}"))
@@ -287,7 +294,15 @@ def build_parser() -> argparse.ArgumentParser:
                                       "(default: no validation)")
     s.add_argument("--val-spps", type=_int_list,
                    help="comma-separated sampling rates of --val-data to score (default: all)")
+    s.add_argument("--train-spps", type=_int_list,
+                   help="comma-separated sampling rates of the training renders, e.g. 1,4,16,64: crops are drawn "
+                        "from the renders at these rates (the method's config train_spps, written into the "
+                        "weights' config.json; default: the method's own)")
     s.add_argument("--validate-every", type=int, help="steps between validations (default: only at the end)")
+    s.add_argument("--select", choices=["mean", "geomean"],
+                   help="what picks OUT/best among the validations: the mean RelMSE over the validation frames, "
+                        "or its geometric mean, which counts every frame by its ratio (for validation frames at "
+                        "several rates, where the mean follows the noisiest; default: mean)")
     s.add_argument("--ema", type=float, help="validate and save an exponential moving average of the params "
                                              "with this decay, e.g. 0.999 (default: the method's, else off)")
     s.add_argument("--quiet", action="store_true", help="no progress bar (default: a progress bar on stderr)")

@@ -50,7 +50,9 @@ Validation (``val_data`` and ``validate_every > 0``): every ``validate_every`` s
 the current params denoise one render per shot and sampling rate of ``val_data`` (the first noise
 instance; ``val_spps`` limits the rates) through the method's full inference path (`inference.inference_fn`,
 so post-processing such as LBF's spike removal is included), and the score is the mean RelMSE
-(`metrics.relmse`) over those frames. Mini-batch losses are too noisy to pick weights by, and a run
+(`metrics.relmse`) over those frames, or with ``select="geomean"`` their geometric mean (`SELECT`:
+validation frames at several rates, where the mean follows the noisiest rate; both are recorded
+either way). Mini-batch losses are too noisy to pick weights by, and a run
 can get worse on some scenes while its training loss falls; ``best/`` is what to ship. The scores
 are kept in the checkpoint's history, so a resumed run continues the same record. A run started
 from given weights (``init_from``) scores them first (step 0), so ``best/`` is never worse on the
@@ -131,6 +133,12 @@ class TrainError(JaxdenoiseError, RuntimeError):
     """Training cannot start or continue (bad data, config mismatch on resume, diverged)."""
 
 
+# How best/ is picked (TrainConfig.select): the validation record's key it minimizes, and what it is.
+# The mean is dominated by the noisiest frames (with validation frames at 1 and 64 spp, by the 1-spp
+# ones); the geometric mean weighs every frame by its ratio, so a rate-general run is picked at every rate.
+SELECT = {"mean": ("relmse", "mean RelMSE over the validation frames (metrics.relmse)"),
+          "geomean": ("relmse_geomean", "geometric mean of RelMSE over the validation frames (metrics.relmse)")}
+
 # The TrainConfig fields that change the compiled step (its cache key, with the method).
 OPTIMIZER_FIELDS = ("optimizer", "learning_rate", "adam_b1", "adam_b2", "schedule", "schedule_every",
                     "schedule_factor", "clip_norm")
@@ -151,6 +159,7 @@ class TrainConfig:
     val_data: str | None = None  # folder or whole-frame export scored during training (module docstring)
     val_spps: tuple[int, ...] | None = None  # its sampling rates to score (None: all)
     validate_every: int = 0  # steps between validations (0: only at the end, when val_data is given)
+    select: str = "mean"  # what picks best/: a validation record's key in SELECT (module docstring)
     checkpoint_every: int = 25
     max_bad_steps: int = 20  # non-finite steps in a row that stop the run
     time_limit: float | None = None  # seconds; stop (with a checkpoint) when exceeded
@@ -177,6 +186,8 @@ class TrainConfig:
             raise TrainError(f"steps must be >= 0, got {self.steps}")
         if self.validate_every < 0:
             raise TrainError(f"validate_every must be >= 0, got {self.validate_every}")
+        if self.select not in SELECT:
+            raise TrainError(f"select must be one of {sorted(SELECT)}, got {self.select!r}")
         if not 0.0 <= self.ema < 1.0:
             raise TrainError(f"ema must be in [0, 1) (0: off), got {self.ema}")
 
@@ -500,7 +511,7 @@ def validation_round(method: Method, frames: list[dict], state: State) -> dict:
     record = {"step": state.step, **validate(method, state.shipped, frames)}
     if state.ema is not None:
         raw = validate(method, state.params, frames)
-        record["raw"] = {"relmse": raw["relmse"], "per_spp": raw["per_spp"]}
+        record["raw"] = {k: raw[k] for k in ("relmse", "relmse_geomean", "per_spp")}
     record["seconds"] = time.perf_counter() - t
     return record
 
@@ -531,7 +542,7 @@ def selection_curve(method: Method, run: TrainConfig, state: State) -> dict:
     """``selection.json`` beside saved weights: every validation record of the run so far and the
     step ``best/`` holds, the curve a weights README points to when the weights ship."""
     return {"method": method.name, "val_data": None if run.val_data is None else str(run.val_data),
-            "val_spps": run.val_spps, "metric": "mean RelMSE over the validation frames (metrics.relmse)",
+            "val_spps": run.val_spps, "metric": SELECT[run.select][1], "select": SELECT[run.select][0],
             "selected_step": None if state.best is None else state.best["step"],
             "bad_steps": state.bad_steps, "validation": state.validation}
 
@@ -649,7 +660,7 @@ def _validation_from_export(method: Any, path: Path, wanted: set | None) -> list
 
 def validate(method: Any, params: Any, frames: list[dict]) -> dict:
     """Mean RelMSE of ``method`` with ``params`` over ``frames`` (`load_validation`), overall and
-    per sampling rate, and mean SSIM beside it (None when every frame is under SSIM's window); a
+    per sampling rate, their geometric mean (``relmse_geomean``), and mean SSIM beside it (None when every frame is under SSIM's window); a
     sequence entry runs through the sequence driver (state carried, neighbours read) and counts each
     of its frames. A non-finite output scores RelMSE ``inf`` (never the best)."""
     from . import metrics
@@ -673,7 +684,8 @@ def validate(method: Any, params: Any, frames: list[dict]) -> dict:
         else:
             score(fn(params, f["buffers"]), f["reference"], f["spp"])
     every = [e for es in errs.values() for e in es]
-    return {"relmse": float(np.mean(every)), "ssim": float(np.mean(ssims)) if ssims else None,
+    geomean = float(np.exp(np.mean(np.log(np.maximum(every, 1e-30))))) if all(map(math.isfinite, every)) else math.inf
+    return {"relmse": float(np.mean(every)), "relmse_geomean": geomean, "ssim": float(np.mean(ssims)) if ssims else None,
             "per_spp": {str(k): float(np.mean(v))
                     for k, v in sorted(errs.items(), key=lambda kv: (kv[0] is None, kv[0] or 0))}}
 
@@ -734,13 +746,15 @@ def train(method: Method, data: str | os.PathLike | TrainingData, out_dir: str |
             return
         record = validation_round(method, frames, state)
         state.validation.append(record)
-        if state.best is None or record["relmse"] < state.best["relmse"]:
+        key = SELECT[run.select][0]
+        if state.best is None or record[key] < state.best.get(key, math.inf):  # (older records lack a key)
             state.best = record
             save_weights(out_dir / BEST_DIR, method, run, data, state, val_data=run.val_data, validation=record)
         else:  # the curve beside best/ runs on past the step it holds
             write_json(out_dir / BEST_DIR / SELECTION_FILE, selection_curve(method, run, state))
         if bar is not None:
-            bar.write(f"step {state.step}: validation RelMSE {record['relmse']:.5g} (best {state.best['relmse']:.5g} "
+            bar.write(f"step {state.step}: validation RelMSE {record['relmse']:.5g}, geometric mean "
+                      f"{record['relmse_geomean']:.5g} (best by {key} {state.best.get(key, math.inf):.5g} "
                       f"at step {state.best['step']}; {record['seconds']:.0f} s)")
 
     # loop

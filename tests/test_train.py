@@ -11,7 +11,7 @@ import pytest
 
 from jaxdenoise import checkpoint
 from jaxdenoise.methods import lbf
-from jaxdenoise.train import TrainError, restore_like  # restore_like: checkpoint's, as TrainError
+from jaxdenoise.train import TrainConfig, TrainError, restore_like  # restore_like: checkpoint's, as TrainError
 
 from conftest import fit, registered, synthetic_frame
 
@@ -224,6 +224,31 @@ def test_a_cli_run_resolves_the_method_once(dataset, tmp_path, monkeypatch):
     assert main(args + ["--steps", "3", "--resume"]) == 0 and Counting.reads == 2  # exact: one per run
     resolved = json.loads((tmp_path / "run" / "train_config.json").read_text())
     assert resolved["train"]["steps"] == 3 and resolved["train"]["optimizer"] == "rprop"  # CLI, then TRAIN default
+
+
+def test_cli_trains_at_the_given_rates_and_selects_by_the_geometric_mean(dataset, tmp_path, monkeypatch):
+    """``--train-spps`` sets the config's training rates (recorded with the weights); ``--select
+    geomean`` picks best/ by the geometric mean of the validation RelMSE, recorded beside the mean."""
+    from jaxdenoise import methods
+    from jaxdenoise.cli import main
+
+    monkeypatch.setattr(methods, "_REGISTRY", dict(methods._REGISTRY))  # restored after the test
+    methods.register("lbf", "jaxdenoise.methods.lbf", **dataclasses.asdict(CFG))
+    out = tmp_path / "run"
+    assert main(["train", "lbf", "--data", str(dataset), "--out", str(out), "--val-data", str(dataset),
+                 "--validate-every", "1", "--steps", "3", "--train-spps", "8", "--select", "geomean", "--quiet"]) == 0
+    resolved = json.loads((out / "train_config.json").read_text())
+    assert resolved["config"]["train_spps"] == [8] and resolved["train"]["select"] == "geomean"  # exact
+    _, meta = checkpoint.load(out / "best")
+    assert meta["config"]["train_spps"] == [8]  # the shipped config says which rates it saw
+    curve = json.loads((out / "best" / "selection.json").read_text())
+    assert curve["select"] == "relmse_geomean"
+    vals = curve["validation"]
+    for v in vals:  # both rates scored; the geometric mean is that of the frames' RelMSE
+        assert set(v["per_spp"]) == {"4", "8"} and 0 < v["relmse_geomean"] <= v["relmse"]
+    assert curve["selected_step"] == min(vals, key=lambda v: v["relmse_geomean"])["step"]
+    with pytest.raises(TrainError, match="select must be one of"):
+        dataclasses.replace(TrainConfig(), select="median")
 
 
 # -- schedules, clipping, devices, imports -----------------------------------------------------------
