@@ -8,7 +8,6 @@ to its outputs.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 import time
 from importlib.metadata import entry_points
@@ -193,8 +192,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         if not hasattr(method.config, "train_spps"):
             raise TrainError(f"argument --train-spps: method '{args.method}' trains at one fixed rate "
                              "(its config has no train_spps)")
-        method = dataclasses.replace(method, config=dataclasses.replace(
-            method.config, train_spps=tuple(sorted(set(args.train_spps)))))
+        method = method.with_config(train_spps=tuple(sorted(set(args.train_spps))))
     summary = train(method, args.data, args.out,
                     TrainConfig.for_method(method, **{k: v for k, v in options.items() if v is not None}))
     print(summary.get("line", f"train: {args.method} done; outputs in {args.out}"))

@@ -235,8 +235,10 @@ def restore_like(template: Any, loaded: Any, *, where: str = "checkpoint") -> An
 def model_fields(config: Any, cfg_dict: dict) -> dict:
     """The entries of a config dict (of ``config``'s class) that define the model: without the
     training-only fields (``train_*``: crops, batch; dataclass fields with ``metadata={"training":
-    True}``: loss weights, schedules), in which weights given to ``init_from`` may differ."""
-    training = {f.name for f in dataclasses.fields(config) if f.metadata.get("training")}
+    True}``: loss weights, schedules) and the input transforms a fine-tune may change (``metadata=
+    {"fine_tune": True}``: DEMC's exposure), in which weights given to ``init_from`` may differ."""
+    training = {f.name for f in dataclasses.fields(config)
+                if f.metadata.get("training") or f.metadata.get("fine_tune")}
     return {k: v for k, v in cfg_dict.items() if not k.startswith("train_") and k not in training}
 
 

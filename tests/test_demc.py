@@ -131,7 +131,7 @@ def test_loss_is_eq5_relmse_in_hdr():
 
 
 def test_inputs_eq4_and_feature_normalisation():
-    cfg = demc.Config()
+    cfg = demc.Config(exposure="none")
     p = demc.init(jax.random.PRNGKey(0), cfg)
     p["norm"] = {"mean": jnp.arange(12, dtype=jnp.float32), "std": jnp.full((12,), 2.0)}
     fr = _frame(8, 8)
@@ -148,8 +148,41 @@ def test_inputs_eq4_and_feature_normalisation():
     assert float(jnp.max(demc.inputs(p, bad, cfg)[0])) == 0.0
 
 
+@pytest.mark.parametrize("variant", ["demc", "nosn"])
+def test_exposure_frame_scales_the_output_with_the_input(variant):
+    """``exposure = "frame"``: f(k x) = k f(x) for k in 1/16..16 (the colour is scaled to a fixed level
+    by a statistic of degree 1, and the output scaled back); stated tolerance 1e-4 relative to the
+    output's largest value (float32 rounding). A batch without carried statistics gets one level per
+    item, the same as each frame alone."""
+    cfg = dataclasses.replace(SMALL, variant=variant, exposure="frame")
+    p = demc.init(jax.random.PRNGKey(1), cfg)
+    fr = _frame(40, 24, seed=5)
+    base = np.asarray(demc.apply(p, fr, cfg))
+    for k in (1 / 16, 1 / 4, 1.0, 3.0, 16.0):
+        out = np.asarray(demc.apply(p, dataclasses.replace(fr, color=fr.color * np.float32(k)), cfg))
+        assert np.max(np.abs(out - k * base)) <= 1e-4 * k * np.max(np.abs(base))
+    # the level: per frame, degree 1, clipped at the 99.9 % luminance quantile (one firefly does not set it)
+    levels = np.asarray(demc.exposure_level(np.stack([fr.color, 4 * fr.color])))[:, 0]
+    assert np.shape(demc.exposure_level(fr.color)) == (1,)  # a per-frame statistic is a small vector
+    np.testing.assert_allclose(levels[1], 4 * levels[0], rtol=1e-6)
+    hot = fr.color.copy()
+    hot[0, 0] = 1e6
+    np.testing.assert_allclose(float(demc.exposure_level(hot)[0]), levels[0], rtol=0.01)
+    assert float(demc.exposure_level(np.zeros((8, 8, 3), np.float32))[0]) == 0.0
+    assert float(np.max(np.asarray(demc.apply(p, dataclasses.replace(fr, color=np.zeros_like(fr.color)), cfg)))) < 1e3
+    b = _batch(2, 32)
+    both = np.asarray(demc.apply(p, Buffers(**{k: b[k] for k in b if k != "reference"}), cfg))
+    one = np.asarray(demc.apply(p, Buffers(**{k: b[k][1] for k in b if k != "reference"}), cfg))
+    np.testing.assert_allclose(both[1], one, rtol=1e-4, atol=1e-5)
+    # "none" keeps the paper's inputs (the shipped demc-paper weights were trained that way)
+    none = dataclasses.replace(cfg, exposure="none")
+    np.testing.assert_allclose(np.asarray(demc.inputs(p, fr, none)[0]), fr.color ** (1 / 2.2), rtol=1e-5)
+
+
 def test_bad_config_is_named():
     with pytest.raises(ValueError, match="variant"):
         demc.num_params(demc.Config(variant="triple"))
+    with pytest.raises(ValueError, match="exposure"):
+        demc.num_params(demc.Config(exposure="auto"))
     with pytest.raises(ValueError, match="five positive"):
         demc.num_params(demc.Config(widths=(4, 4)))

@@ -29,7 +29,10 @@ and what was measured). The per-frame mean and standard deviation of the positio
 whole frame in training as at inference: they are declared by `frame_stats`, computed by the
 training pipeline on each whole render and carried by its crops (`jaxdenoise.pipeline`), and
 `inputs` uses the carried values when given, else computes them from its array (at inference the
-whole frame). The output mapped back by ``max(y, 0)^gamma``; loss = RelMSE in HDR with
+whole frame). With ``exposure = "frame"`` (ours, the default; the paper's input is ``"none"``) the
+colour is first scaled to `EXPOSURE_LEVEL` by the frame's `exposure_level` (another such whole-frame
+statistic) and the output scaled back, so ``f(k x) = k f(x)``. The output mapped back by
+``max(y, 0)^gamma``; loss = RelMSE in HDR with
 eps = 1e-3 (Eq. 5). Xavier initialisation of the encoder, latent and fusion convs (Sec. 4.2). The
 paper's channel widths are not legible: ours are ``Config.widths`` (docs/methods/demc.md gives the
 parameter count). Any input size: padded to a multiple of 32 and cropped back.
@@ -59,6 +62,13 @@ __all__ = ["Config", "needs", "init", "init_from_data", "apply", "forward", "los
 # 4.4e-3 and RelMSE +0.01 % at 96 px, against 4.1e-2 and +0.31 % at 64.
 TILE_MARGIN = 96
 
+# `exposure = "frame"`: the level a frame's colour is scaled to before Eq. 4 (ours, docs/methods/demc.md)
+# and the quantile of the luminance above which pixels are clipped when the level is measured.
+EXPOSURE_LEVEL = 0.2
+EXPOSURE_CLIP_QUANTILE = 0.999
+EXPOSURES = ("none", "frame")
+RECIPES = ("", "paper")
+
 # The 12 feature channels of Sec. 3.1, in the order they are stacked.
 FEATURES: tuple[str, ...] = ("normal", "position", "albedo", "albedo2")
 VARIANTS = ("demc", "semc", "nosn")
@@ -78,8 +88,14 @@ class Config:
     position_norm: str = "frame"  # "frame" (per-frame z-score) or "global" (training-set z-score)
     bn_momentum: float = 0.9  # running statistics of the fusion sub-network's BatchNorm (ours)
     xavier_gain: float = 1.0  # Xavier (Sec. 4.2) = 1; 2 is the ReLU-compensated variant (measured, demc.md)
-    # Training data (Sec. 4.1: 4-spp inputs); crop and batch are ours, sized to the machine.
-    train_spps: tuple[int, ...] = (4,)
+    # "frame": the colour scaled to EXPOSURE_LEVEL by a frame statistic (ours, `exposure_level`); "none":
+    # as the paper. Weights may be fine-tuned across a change of it (it changes no parameter's shape).
+    exposure: str = dataclasses.field(default="frame", metadata={"fine_tune": True})
+    # Training data (Sec. 4.1: 4-spp inputs; ours: 1-64); crop and batch are ours, sized to the machine.
+    train_spps: tuple[int, ...] = (1, 4, 16, 64)  # ours; the paper's recipe trains at 4 (`recipe`)
+    # The training recipe the weights folder is named after: "" (the default weights: every rate,
+    # exposure "frame") or "paper" (Sec. 4.1: 4 spp, the paper's input; registered as "demc-paper").
+    recipe: str = dataclasses.field(default="", metadata={"training": True})
     train_crop: int = 96
     train_batch: int = 32
 
@@ -91,7 +107,8 @@ FROZEN: tuple[str, ...] = ("norm",)
 
 
 def WEIGHTS(config: Config) -> str:
-    return "demc" if config.variant == "demc" else f"demc-{config.variant}"
+    name = "demc" if config.variant == "demc" else f"demc-{config.variant}"
+    return f"{name}-{config.recipe}" if config.recipe else name
 
 
 def _check(config: Config) -> None:
@@ -102,6 +119,10 @@ def _check(config: Config) -> None:
                          f"units, Sec. 3.2), got {config.widths}")
     if config.position_norm not in ("frame", "global"):
         raise JaxdenoiseError(f"demc: config.position_norm is {config.position_norm!r}; expected 'frame' or 'global'")
+    if config.recipe not in RECIPES:
+        raise JaxdenoiseError(f"demc: config.recipe is {config.recipe!r}; expected one of {RECIPES}")
+    if config.exposure not in EXPOSURES:
+        raise JaxdenoiseError(f"demc: config.exposure is {config.exposure!r}; expected one of {EXPOSURES}")
     if not config.gamma > 0:
         raise JaxdenoiseError(f"demc: config.gamma must be > 0, got {config.gamma}")
 
@@ -270,20 +291,53 @@ def position_moments(p: jax.Array) -> tuple[jax.Array, jax.Array]:
     return mu[..., 0, 0, :], sd[..., 0, 0, :]
 
 
+def exposure_level(color: Any) -> jax.Array:
+    """The exposure statistic of ``exposure = "frame"`` (ours): the mean luminance of a frame with
+    pixels above its `EXPOSURE_CLIP_QUANTILE` luminance clipped there (a few fireflies or a small
+    light do not set it); ``(..., H, W, 3)`` -> one value per frame ``(...)``. Homogeneous of degree
+    1 (a frame k times brighter has a k times larger level), so ``f(k x) = k f(x)`` holds for the
+    method up to rounding. Non-finite and negative values count as 0. Shape ``(..., 1)`` (a
+    per-frame statistic is a small vector, `jaxdenoise.pipeline`)."""
+    c = jnp.asarray(color, jnp.float32)
+    c = jnp.where(jnp.isfinite(c), jnp.maximum(c, 0.0), 0.0)
+    lum = 0.2126 * c[..., 0] + 0.7152 * c[..., 1] + 0.0722 * c[..., 2]
+    lum = lum.reshape(lum.shape[:-2] + (-1,))
+    clip = jnp.quantile(lum, EXPOSURE_CLIP_QUANTILE, axis=-1, keepdims=True, method="lower")
+    return jnp.mean(jnp.minimum(lum, clip), axis=-1, keepdims=True)
+
+
 def frame_stats(config: Config) -> dict:
     """The per-frame statistics of `inputs` (`jaxdenoise.methods.protocol`): with ``position_norm =
     "frame"`` the world position's mean and standard deviation over the whole frame
-    (`position_moments`), which the training pipeline computes on every whole render and carries
-    with its crops."""
+    (`position_moments`), with ``exposure = "frame"`` the colour's `exposure_level`; the training
+    pipeline computes them on every whole render and carries them with its crops."""
     _check(config)
+    stats = {}
+    if config.exposure == "frame":
+        stats["exposure_level"] = lambda frame: exposure_level(_getter(frame)("color"))
     if config.position_norm != "frame":
-        return {}
+        return stats
 
     def moments(frame):  # the position as `inputs` reads it (float32, non-finite values 0)
         p = jnp.asarray(_getter(frame)("position"), jnp.float32)
         return position_moments(jnp.where(jnp.isfinite(p), p, 0.0))
 
-    return {"position_mean": lambda frame: moments(frame)[0], "position_std": lambda frame: moments(frame)[1]}
+    return {**stats, "position_mean": lambda frame: moments(frame)[0],
+            "position_std": lambda frame: moments(frame)[1]}
+
+
+def exposure_scale(buffers: Any, config: Config) -> jax.Array:
+    """The factor `inputs` multiplies the colour by (1 with ``exposure = "none"``): `EXPOSURE_LEVEL`
+    over the frame's `exposure_level` (a crop's carried value, else the array's own), 1 for a black
+    frame; shaped ``(..., 1, 1, 1)`` to broadcast against the colour."""
+    if config.exposure == "none":
+        return jnp.ones((), jnp.float32)
+    level = carried_stat(buffers, "exposure_level")
+    if level is None:
+        level = exposure_level(_getter(buffers)("color"))
+    level = jnp.asarray(level, jnp.float32)
+    scale = jnp.where(level > 1e-12, EXPOSURE_LEVEL / jnp.maximum(level, 1e-12), 1.0)
+    return jax.lax.stop_gradient(scale)[..., None, None]
 
 
 def inputs(params: dict, buffers: Any, config: Config) -> tuple[jax.Array, jax.Array]:
@@ -294,7 +348,7 @@ def inputs(params: dict, buffers: Any, config: Config) -> tuple[jax.Array, jax.A
     inference, the whole frame)."""
     get = _getter(buffers)
     color = jnp.asarray(get("color"), jnp.float32)
-    color = jnp.where(jnp.isfinite(color), jnp.maximum(color, 0.0), 0.0)
+    color = jnp.where(jnp.isfinite(color), jnp.maximum(color, 0.0), 0.0) * exposure_scale(buffers, config)
     x_color = gamma(color, config.gamma)  # color ** (1 / gamma), with a finite gradient at 0 (Dr.Jit bridge)
     feats = jnp.concatenate([jnp.asarray(get(f), jnp.float32) for f in FEATURES], -1)
     feats = jnp.where(jnp.isfinite(feats), feats, 0.0)
@@ -321,10 +375,11 @@ def _run(params, buffers, config, train=False):
     x_color, size = nn.pad_to_multiple(x_color, 32)
     x_feat, _ = nn.pad_to_multiple(x_feat, 32)
     out = forward(params, x_color, x_feat, config, train=train)
+    unscale = 1.0 / exposure_scale(buffers, config)  # back to the frame's own exposure
     if train:
         y, updates = out
-        return _decompress(nn.crop_to(y, size), config), updates
-    return _decompress(nn.crop_to(out, size), config)
+        return _decompress(nn.crop_to(y, size), config) * unscale, updates
+    return _decompress(nn.crop_to(out, size), config) * unscale
 
 
 def apply(params: dict, buffers: Buffers, config: Config) -> jax.Array:
