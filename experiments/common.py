@@ -65,6 +65,14 @@ def tar_folders(out: Path, name: str, folders: dict[str, Path]) -> None:
     tmp.rename(out / name)
 
 
+def box_mean(x, size: int = 15):
+    """The ``size x size`` box mean of an (H, W, C) array per channel (edges reflected): the colour
+    level studies' local average (issues 15, 33)."""
+    from scipy.ndimage import uniform_filter
+
+    return uniform_filter(x, (size, size, 1))
+
+
 def num(value, spec: str = ".4g") -> str:
     """One measured number as a result page shows it (the experiments' ``page`` functions and
     scripts/results.py); a missing (None) or non-finite value is an error, so a page never prints

@@ -25,14 +25,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from jaxdenoise.fsutil import write_json  # noqa: E402
+from common import box_mean  # noqa: E402
 
 BOX = 15
-
-
-def _box(x: np.ndarray) -> np.ndarray:
-    from scipy.ndimage import uniform_filter
-
-    return uniform_filter(x, (BOX, BOX, 1))
 
 
 def levels(weights: str | None, folder: str, spp: int, count: int) -> list[list[float]]:
@@ -54,7 +49,7 @@ def levels(weights: str | None, folder: str, spp: int, count: int) -> list[list[
         b, _ = read_buffers(renders[0].path)
         y = np.asarray(fn(gp, prepare(m, b)), np.float64)
         base = np.maximum(np.nan_to_num(np.asarray(b.color, np.float64)[..., :3]), 0.0)
-        r = _box(y) / np.maximum(_box(base), 1e-6)
+        r = box_mean(y, BOX) / np.maximum(box_mean(base, BOX), 1e-6)
         e = BOX // 2
         out.append([float(v) for v in np.median(r[e:-e, e:-e], axis=(0, 1))])
     return out

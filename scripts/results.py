@@ -150,6 +150,18 @@ def _demc_heldout(results: Path) -> str:
                       ["input", "gaussian", "bilateral", "lbf", "demc", "oidn"], [4, 16, 64])
 
 
+@renderer("demc-rates-library")
+def _demc_rates_library(results: Path) -> str:
+    return bench_wide(results, "bench_demc_rates/library_eval/results.json",
+                      ["input", "demc-paper", "demc", "oidn"], [1, 4, 16, 64])
+
+
+@renderer("demc-rates-heldout")
+def _demc_rates_heldout(results: Path) -> str:
+    return bench_wide(results, "bench_demc_rates/heldout/results.json",
+                      ["input", "demc-paper", "demc", "oidn"], [1, 4, 16, 64])
+
+
 bind("demc-heldout-time", bench_time, "bench_heldout_demc/results.json", ["bilateral", "lbf", "demc", "oidn"], 4)
 
 
@@ -738,6 +750,7 @@ STUDIES: dict[str, tuple[str, str]] = {
     "adaptive/variants.md": ("adaptive_variants", "adaptive/variants.json"),
     "gradient_emission/gradient_emission.md": ("gradient_emission", "gradient_emission/gradient_emission.json"),
     "tiling/tiling.md": ("tiling", "tiling/tiling.json"),
+    "demc_rates/demc_levels.md": ("demc_levels", "demc_rates/demc_levels.json"),
 }
 
 # Pages written by hand that state no measured number of their own (they point to the pages above).

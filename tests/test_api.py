@@ -119,10 +119,11 @@ def test_regime_notes_say_where_a_network_runs_outside_what_it_was_trained_on():
     from jaxdenoise.inference import notes
     from jaxdenoise.methods import get
 
-    demc, rae, lbf = get("demc"), get("rae"), get("lbf")
+    demc, paper, rae, lbf = get("demc"), get("demc-paper"), get("rae"), get("lbf")
     at = lambda spp: synthetic_frame(8, 8, seed=1).replace(spp=np.float32(spp))
-    assert notes(demc, at(4)) == [] and notes(lbf, at(32)) == []  # inside: no remark
-    assert notes(demc, at(16)) == ["demc was trained at 4 spp; this frame has 16 spp, outside its trained rates"]
+    assert notes(paper, at(4)) == [] and notes(lbf, at(32)) == [] and notes(demc, at(16)) == []  # inside
+    assert notes(paper, at(16)) == ["demc-paper was trained at 4 spp; this frame has 16 spp, outside its trained rates"]
+    assert notes(demc, at(128)) == ["demc was trained at 1-64 spp; this frame has 128 spp, outside its trained rates"]
     assert notes(lbf, at(128)) == ["lbf was trained at 4-64 spp; this frame has 128 spp, outside its trained rates"]
     single = [n for n in notes(rae, at(1)) if "single frame" in n]
     assert len(single) == 1 and "7-frame sequences" in single[0]

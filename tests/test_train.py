@@ -150,7 +150,7 @@ def test_weight_average_is_the_ema_of_the_iterates_and_resumes(dataset, tmp_path
     assert any(float(np.max(np.abs(np.asarray(a) - np.asarray(b)))) > 1e-6  # the average is not the last iterate
                for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(iterates[3])))
     rec = full["validation"][-1]
-    assert set(rec["raw"]) == {"relmse", "per_spp"} and rec["raw"]["relmse"] != rec["relmse"]
+    assert set(rec["raw"]) == {"relmse", "relmse_geomean", "per_spp"} and rec["raw"]["relmse"] != rec["relmse"]
     # interrupted after step 2 and resumed: the checkpoint carries the average
     fit("lbf", dataset, tmp_path / "part", steps=2, ema=0.5, **kw)
     fit("lbf", dataset, tmp_path / "part", steps=3, ema=0.5, resume=True, **kw)
