@@ -156,6 +156,12 @@ def _demc_rates_library(results: Path) -> str:
                       ["input", "demc-paper", "demc", "oidn"], [1, 4, 16, 64])
 
 
+@renderer("demc-rates-library-lbf")
+def _demc_rates_library_lbf(results: Path) -> str:
+    return bench_wide(results, "bench_demc_rates/library_eval_lbf/results.json",
+                      ["input", "lbf", "demc-paper", "demc", "oidn"], [4])
+
+
 @renderer("demc-rates-heldout")
 def _demc_rates_heldout(results: Path) -> str:
     return bench_wide(results, "bench_demc_rates/heldout/results.json",
