@@ -60,9 +60,9 @@ def test_tiles_carry_the_whole_frames_statistics():
 def test_network_tiled_under_a_budget_equals_the_whole_frame():
     """`demc` under a budget below its whole-frame program: tiles are chosen, each within the budget,
     and the output equals the whole frame's within the tolerance its margin was chosen for
-    (docs/results/tiling/, measured with the weights now named demc-paper: max |tiled - whole| /
-    (|whole| + 0.01) 1e-2 there; the rate-general weights of 0.8.0 reach 2.7e-2 on this synthetic
-    frame, whose margin study has not been re-run: bound 4e-2)."""
+    (docs/results/tiling/, a rendered frame: max |tiled - whole| / (|whole| + 0.01) 1.0e-2 with the
+    0.8.0 weights, 4.4e-3 with the paper-recipe ones; on this synthetic frame the 0.8.0 weights reach
+    2.7e-2: bound 4e-2)."""
     b = synthetic_frame(256, 448, seed=3)
     m = get("demc")
     _, params = jaxdenoise.api.resolve("demc")

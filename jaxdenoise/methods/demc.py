@@ -55,11 +55,12 @@ from ..errors import JaxdenoiseError
 from ..pipeline import carried_stat, carried_stats
 
 __all__ = ["Config", "needs", "init", "init_from_data", "apply", "forward", "loss", "make_dataset", "batch",
-           "inputs", "frame_stats", "position_moments", "num_params", "widths_of", "FEATURES", "TRAIN", "FROZEN",
-           "WEIGHTS"]
+           "inputs", "frame_stats", "position_moments", "exposure_level", "exposure_scale", "num_params", "widths_of",
+           "FEATURES", "TRAIN", "FROZEN", "WEIGHTS"]
 # Pixels of context a tile needs on each side (`jaxdenoise.tiling`), measured on a real frame
-# (docs/results/tiling/): max |tiled - whole| / (|whole| + 0.01) of
-# 4.4e-3 and RelMSE +0.01 % at 96 px, against 4.1e-2 and +0.31 % at 64.
+# (docs/results/tiling/): with the 0.8.0 weights max |tiled - whole| / (|whole| + 0.01) of 1.0e-2 and
+# RelMSE -0.29 % at 96 px, against 8.4e-2 and -2.28 % at 64 (the paper-recipe weights: 4.4e-3 and
+# +0.01 % at 96, 4.1e-2 and +0.31 % at 64).
 TILE_MARGIN = 96
 
 # `exposure = "frame"`: the level a frame's colour is scaled to before Eq. 4 (ours, docs/methods/demc.md)
