@@ -60,9 +60,8 @@ def test_tiles_carry_the_whole_frames_statistics():
 def test_network_tiled_under_a_budget_equals_the_whole_frame():
     """`demc` under a budget below its whole-frame program: tiles are chosen, each within the budget,
     and the output equals the whole frame's within the tolerance its margin was chosen for
-    (docs/results/tiling/, a rendered frame: max |tiled - whole| / (|whole| + 0.01) 1.0e-2 with the
-    0.8.0 weights, 4.4e-3 with the paper-recipe ones; on this synthetic frame the 0.8.0 weights reach
-    2.7e-2: bound 4e-2)."""
+    (docs/results/tiling/: max |tiled - whole| / (|whole| + 0.01) below 2e-2 here; measured 2.0e-3
+    with the 0.8.0 weights and their 128-px margin)."""
     b = synthetic_frame(256, 448, seed=3)
     m = get("demc")
     _, params = jaxdenoise.api.resolve("demc")
@@ -74,7 +73,7 @@ def test_network_tiled_under_a_budget_equals_the_whole_frame():
     assert tile is not None and need <= budget * 2**20
     whole = jaxdenoise.denoise(b, "demc")
     tiled = jaxdenoise.denoise(b, "demc", max_memory_mb=budget)
-    assert np.max(np.abs(tiled - whole) / (np.abs(whole) + 0.01)) < 4e-2
+    assert np.max(np.abs(tiled - whole) / (np.abs(whole) + 0.01)) < 2e-2
     np.testing.assert_array_equal(jaxdenoise.denoise(b, "demc", max_memory_mb=1e6), whole)  # fits: not tiled
 
 
