@@ -297,10 +297,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "from the renders at these rates (the method's config train_spps, written into the "
                         "weights' config.json; default: the method's own)")
     s.add_argument("--validate-every", type=int, help="steps between validations (default: only at the end)")
-    s.add_argument("--select", choices=["mean", "geomean"],
+    s.add_argument("--select", choices=["mean", "geomean", "loss"],
                    help="what picks OUT/best among the validations: the mean RelMSE over the validation frames, "
                         "or its geometric mean, which counts every frame by its ratio (for validation frames at "
-                        "several rates, where the mean follows the noisiest; default: mean)")
+                        "several rates, where the mean follows the noisiest), or the method's unsupervised "
+                        "validation loss, which reads no reference (gradnet; default: mean)")
     s.add_argument("--ema", type=float, help="validate and save an exponential moving average of the params "
                                              "with this decay, e.g. 0.999 (default: the method's, else off)")
     s.add_argument("--quiet", action="store_true", help="no progress bar (default: a progress bar on stderr)")

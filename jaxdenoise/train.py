@@ -52,7 +52,10 @@ instance; ``val_spps`` limits the rates) through the method's full inference pat
 so post-processing such as LBF's spike removal is included), and the score is the mean RelMSE
 (`metrics.relmse`) over those frames, or with ``select="geomean"`` their geometric mean (`SELECT`:
 validation frames at several rates, where the mean follows the noisiest rate; both are recorded
-either way). Mini-batch losses are too noisy to pick weights by, and a run
+either way). A method whose module defines ``validation_loss(params, buffers, config)`` (an
+unsupervised loss of one whole frame that reads no reference: GradNet's) also gets its mean over
+the frames recorded as ``loss``, and ``select="loss"`` picks ``best/`` by it: what a user without
+references can do (the reference-based scores are still recorded beside it, never used to choose). Mini-batch losses are too noisy to pick weights by, and a run
 can get worse on some scenes while its training loss falls; ``best/`` is what to ship. The scores
 are kept in the checkpoint's history, so a resumed run continues the same record. A run started
 from given weights (``init_from``) scores them first (step 0), so ``best/`` is never worse on the
@@ -108,7 +111,7 @@ from .errors import JaxdenoiseError
 __all__ = ["TrainConfig", "TrainError", "TrainingData", "State", "Group", "Stepper", "train", "load_data",
            "initial_state", "param_groups", "optimizer_state", "step_fn", "make_stepper", "validation_round", "save_checkpoint",
            "save_weights", "selection_curve", "restore_like", "make_optimizer", "model_fields", "summary_line", "load_validation",
-           "validate", "shard_batch", "batch_workers"]
+           "unsupervised_loss", "validate", "shard_batch", "batch_workers"]
 
 CHECKPOINT_DIR = "checkpoint"
 WEIGHTS_DIR = "weights"
@@ -137,7 +140,9 @@ class TrainError(JaxdenoiseError, RuntimeError):
 # The mean is dominated by the noisiest frames (with validation frames at 1 and 64 spp, by the 1-spp
 # ones); the geometric mean weighs every frame by its ratio, so a rate-general run is picked at every rate.
 SELECT = {"mean": ("relmse", "mean RelMSE over the validation frames (metrics.relmse)"),
-          "geomean": ("relmse_geomean", "geometric mean of RelMSE over the validation frames (metrics.relmse)")}
+          "geomean": ("relmse_geomean", "geometric mean of RelMSE over the validation frames (metrics.relmse)"),
+          "loss": ("loss", "mean unsupervised validation loss over the validation frames (the method's "
+                           "validation_loss; no reference read)")}
 
 # The TrainConfig fields that change the compiled step (its cache key, with the method).
 OPTIMIZER_FIELDS = ("optimizer", "learning_rate", "adam_b1", "adam_b2", "schedule", "schedule_every",
@@ -513,7 +518,7 @@ def validation_round(method: Method, frames: list[dict], state: State) -> dict:
     record = {"step": state.step, **validate(method, state.shipped, frames)}
     if state.ema is not None:
         raw = validate(method, state.params, frames)
-        record["raw"] = {k: raw[k] for k in ("relmse", "relmse_geomean", "per_spp")}
+        record["raw"] = {k: raw[k] for k in ("relmse", "relmse_geomean", "per_spp", "loss") if k in raw}
     record["seconds"] = time.perf_counter() - t
     return record
 
@@ -672,6 +677,8 @@ def validate(method: Any, params: Any, frames: list[dict]) -> dict:
     fn = inference_fn(method)
     errs: dict[Any, list[float]] = {}
     ssims: list[float] = []
+    losses: list[float] = []
+    vloss = unsupervised_loss(method)
 
     def score(out, ref, spp):
         e = float(metrics.relmse(out, ref))
@@ -685,11 +692,26 @@ def validate(method: Any, params: Any, frames: list[dict]) -> dict:
                 score(out, ref, f["spp"])
         else:
             score(fn(params, f["buffers"]), f["reference"], f["spp"])
+            if vloss is not None:
+                v = float(vloss(params, f["buffers"]))
+                losses.append(v if math.isfinite(v) else math.inf)
     every = [e for es in errs.values() for e in es]
     geomean = float(np.exp(np.mean(np.log(np.maximum(every, 1e-30))))) if all(map(math.isfinite, every)) else math.inf
-    return {"relmse": float(np.mean(every)), "relmse_geomean": geomean, "ssim": float(np.mean(ssims)) if ssims else None,
-            "per_spp": {str(k): float(np.mean(v))
-                    for k, v in sorted(errs.items(), key=lambda kv: (kv[0] is None, kv[0] or 0))}}
+    record = {"relmse": float(np.mean(every)), "relmse_geomean": geomean,
+              "ssim": float(np.mean(ssims)) if ssims else None,
+              "per_spp": {str(k): float(np.mean(v))
+                          for k, v in sorted(errs.items(), key=lambda kv: (kv[0] is None, kv[0] or 0))}}
+    if losses:
+        record["loss"] = float(np.mean(losses))
+    return record
+
+
+def unsupervised_loss(method: Any) -> Callable | None:
+    """The method's ``validation_loss`` (module docstring) jitted as ``f(params, buffers)``, or None."""
+    vloss = getattr(method.module, "validation_loss", None)
+    if vloss is None:
+        return None
+    return jax.jit(functools.partial(vloss, config=method.config))
 
 
 def summary_line(summary: dict) -> str:
@@ -720,6 +742,9 @@ def train(method: Method, data: str | os.PathLike | TrainingData, out_dir: str |
         raise MethodError(f"method '{method.name}' cannot be trained here: its module needs loss, "
                           "make_dataset and batch (see jaxdenoise.train)")
     run = TrainConfig.for_method(method) if run is None else run
+    if run.select == "loss" and unsupervised_loss(method) is None:
+        raise TrainError(f"select='loss' needs an unsupervised validation loss; method '{method.name}' has none "
+                         "(its module defines no validation_loss): select by 'mean' or 'geomean'")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     compile_cache.enable()  # a resumed run compiles its steps from the persistent cache

@@ -312,3 +312,40 @@ def test_an_overshooting_output_decodes_finite_with_a_finite_gradient():
         np.testing.assert_allclose(float(hdr[2]), want, rtol=1e-6)
         g = jax.grad(lambda v: jnp.sum(G.to_hdr(v, cfg)))(y)
         assert bool(jnp.all(jnp.isfinite(g)))
+
+
+def test_unsupervised_selection_reads_no_reference(tmp_path, monkeypatch):
+    """``select="loss"`` picks ``best/`` by the unsupervised validation loss (Eq. 7 at the schedule's
+    end on whole validation frames): with every validation reference poisoned with NaN the same step
+    is chosen and the losses are the same, while the reference scores (reported beside) become inf."""
+    import json
+
+    from conftest import fit, make_shot, synthetic_frame
+    from jaxdenoise import train as T
+
+    monkeypatch.setenv("JAXDENOISE_CACHE", str(tmp_path / "cache"))
+    fields = ("color", "dx", "dy", "albedo", "normal", "depth")
+    for part, seeds in (("data", range(3)), ("val", range(10, 12))):
+        for s in seeds:
+            (tmp_path / part / f"scene_{s}").mkdir(parents=True)
+            f = synthetic_frame(16, 16, seed=s, fields=fields)
+            make_shot(tmp_path / part / f"scene_{s}", np.abs(f.color), {64: f})
+    cfg = dataclasses.replace(CFG, widths=(4, 4, 4), res_blocks=1, g_width=4, train_crop=8, train_batch=2)
+    kw = dict(config=cfg, steps=5, val_data=str(tmp_path / "val"), validate_every=1, select="loss",
+              learning_rate=1e-2, progress=False)
+    fit("gradnet", tmp_path / "data", tmp_path / "clean", **kw)
+    original = T.load_validation
+
+    def poisoned(*a, **k):
+        return [{**f, "reference": np.full_like(f["reference"], np.nan)} for f in original(*a, **k)]
+
+    monkeypatch.setattr(T, "load_validation", poisoned)
+    fit("gradnet", tmp_path / "data", tmp_path / "poisoned", **kw)
+    a, b = (json.loads((tmp_path / r / "best" / "selection.json").read_text()) for r in ("clean", "poisoned"))
+    assert a["select"] == "loss" and a["selected_step"] == b["selected_step"]
+    assert [v["loss"] for v in a["validation"]] == [v["loss"] for v in b["validation"]]
+    assert len({v["loss"] for v in a["validation"]}) > 1  # the loss moves: the choice is a real one
+    assert all(math.isfinite(v["relmse"]) for v in a["validation"])
+    assert all(v["relmse"] == math.inf for v in b["validation"])
+    with pytest.raises(T.TrainError, match="no validation_loss"):
+        fit("demc", tmp_path / "data", tmp_path / "x", steps=1, select="loss", val_data=str(tmp_path / "val"))

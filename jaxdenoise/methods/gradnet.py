@@ -61,7 +61,7 @@ from ..pipeline import carried_stat, carried_stats
 
 __all__ = ["Config", "needs", "init", "apply", "forward", "loss", "loss_terms", "make_dataset", "batch",
            "param_groups", "group_train", "inputs", "frame_stats", "depth_max", "predict", "g_branch",
-           "features", "postprocess", "lambda_at",
+           "features", "postprocess", "lambda_at", "validation_loss",
            "first_order_weights", "first_order_loss", "grad_loss", "num_params", "is_illegal", "output_terms", "TRAIN", "WEIGHTS", "FEATURES"]
 # Pixels of context a tile needs on each side (`jaxdenoise.tiling`), measured on a real frame
 # (docs/results/tiling/): max |tiled - whole| / (|whole| + 0.01) of
@@ -494,6 +494,16 @@ def loss(params: dict, batch: dict, config: Config, group: str | None = None):
     if group is not None:
         raise JaxdenoiseError(f"gradnet: unknown parameter group {group!r}; expected 'autoencoder' or 'gbranch'")
     return l_all + t["g_branch"]
+
+
+def validation_loss(params: dict, buffers: Any, config: Config) -> jax.Array:
+    """The unsupervised score `jaxdenoise.train` can select weights by (``select="loss"``): Eq. 7's
+    ``L_all`` of one whole frame (or batch) at the end of Eq. 14's schedule (``lambda_max``; 0 without
+    the first-order loss), on the network's output before Eq. 13. Reads no reference: what a user
+    without references can choose by (docs/methods/gradnet.md)."""
+    t = loss_terms(params, buffers, config)
+    lam = float(config.lambda_max) if config.first_order else 0.0
+    return t["grad"] + config.alpha * t["data"] + lam * t["first"]
 
 
 # -- training data ---------------------------------------------------------------------------------

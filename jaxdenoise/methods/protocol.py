@@ -24,7 +24,10 @@ inputs are normalized by: ``{name: function of a whole frame's buffers -> a smal
 frame}``; a trainable method passes them to `jaxdenoise.pipeline.open_training_data`, which
 evaluates them on every whole training render and carries them with each crop as
 ``"stat.<name>"``, and its input builder uses a carried value in place of the statistic of the
-array it is given, so that a crop's inputs are the whole frame's inputs cropped).
+array it is given, so that a crop's inputs are the whole frame's inputs cropped),
+``validation_loss(params, buffers, config)`` (an unsupervised loss of one whole frame that reads no
+reference; the trainer records it on the validation frames and can select weights by it,
+``select="loss"``).
 
 A method with none of the temporal hooks (or a `Windowed` one whose ``window`` is ``(0, 0)`` for
 its config) is run frame by frame on sequences.
