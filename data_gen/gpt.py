@@ -57,7 +57,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from .integrator import PathSettings, mis_weight, RoughnessLookup
+from .integrator import FEATURE_DIMS, FEATURES, PathSettings, mis_weight, RoughnessLookup
 from jaxdenoise.errors import JaxdenoiseError
 
 __all__ = ["ShiftSettings", "NEIGHBOURS", "trace_gpt"]
@@ -130,7 +130,7 @@ def _direction_sample(ds, *, p, d, dist):
 
 def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, settings: PathSettings,
               shift: ShiftSettings = ShiftSettings(), roughness: RoughnessLookup | None = None,
-              separate_emission: bool = True) -> dict:
+              separate_emission: bool = True, record: frozenset[str] = frozenset()) -> dict:
     """Trace one base path per lane of ``ray`` and shift it to the four ``offset_rays`` (camera rays
     through the `NEIGHBOURS`, same camera samples; ``*_weight`` the camera weights).
 
@@ -149,12 +149,19 @@ def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, setti
     unfiltered made the thin-lens scene's reconstruction worse; docs/methods/gradient_domain.md).
     False: every depth-0 pair is weighted 1/2 from each end like every other pair (Jacobian 1, equal
     densities), and the visible emitters' edges enter ``grad``.
+
+    ``record``: features of `data_gen.integrator.FEATURES` recorded along the base path, exactly as
+    `data_gen.integrator.trace` records them for the same sampler and ray (same vertices, same values),
+    returned under their names: a gradient frame's buffers need no separate plain render.
     """
     import drjit as dr
     import mitsuba as mi
 
     if roughness is None:
         roughness = RoughnessLookup(scene)
+    record = frozenset(record)
+    if record - set(FEATURES):
+        raise JaxdenoiseError(f"record: unknown feature(s) {sorted(record - set(FEATURES))}; expected some of {FEATURES}")
     thr = float(shift.roughness_threshold)
     ctx = mi.BSDFContext()
     K = len(NEIGHBOURS)
@@ -196,8 +203,30 @@ def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, setti
             beta=beta_y, R=Float(1.0), g=g0, pm=pm0, ps=ps0,
             fl=dr.select(valid0 & ~si_y.is_valid(), UInt32(FAILED << (3 * k)), UInt32(0)),
         ))
+    # Features of the base path (as data_gen.integrator.trace): the feature vertex is the first smooth
+    # one; ``pending`` marks a reached vertex the loop will not visit (the path's last allowed vertex),
+    # whose features are recorded after the loop.
+    feats = {f: (mi.Color3f(0.0) if FEATURE_DIMS[f] == 3 else Float(0.0)) for f in FEATURES if f in record}
+    if "depth" in feats:
+        feats["depth"] = dr.select(valid0, si.t, 0.0)
     state = dict(ray=mi.Ray3f(ray), si=si, depth=UInt32(0), L=L, beta=Spectrum(1.0), eta=Float(1.0),
-                 active=valid0 & (settings.max_depth > 1), offs=offs)
+                 active=valid0 & (settings.max_depth > 1), offs=offs, feats=feats, found=Bool(False),
+                 pending=valid0 & (settings.max_depth <= 1))
+
+    def features_at(f, si, bsdf, at_feat, reaches):
+        # The feature vertex's features (trace's "Features" block; albedo2 is recorded a vertex later).
+        f = dict(f)
+        if "albedo" in f:
+            f["albedo"] = dr.select(at_feat, bsdf.eval_diffuse_reflectance(si, at_feat), f["albedo"])
+        if "normal" in f:
+            f["normal"] = dr.select(at_feat, mi.Color3f(si.sh_frame.n), f["normal"])
+        if "position" in f:
+            f["position"] = dr.select(at_feat, mi.Color3f(si.p), f["position"])
+        if "roughness" in f:
+            f["roughness"] = dr.select(at_feat, roughness(bsdf, at_feat), f["roughness"])
+        if "visibility" in f:
+            f["visibility"] = dr.select(at_feat & reaches, 1.0, f["visibility"])
+        return f
 
     def body(s, smp):
         ray, si, depth, active = s["ray"], s["si"], s["depth"], s["active"]
@@ -205,6 +234,7 @@ def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, setti
         bsdf = si.bsdf(ray)
         smooth = has(bsdf.flags(), mi.BSDFFlags.Smooth)
         offs = [dict(o) for o in s["offs"]]
+        at_feat = active & ~s["found"] & smooth
 
         # ---------------- next-event estimation (as data_gen.integrator.trace) ----------------
         active_em = active & smooth
@@ -403,12 +433,24 @@ def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, setti
                        | dr.select(hv_ok, UInt32(HALF_VECTOR << (3 * k)), 0)
                        | dr.select(cont & fail, UInt32(FAILED << (3 * k)), 0))
 
+        f = features_at(s["feats"], si, bsdf, at_feat, reaches)
+        if "albedo2" in f:  # the vertex after the feature vertex, where the path reaches one
+            at2 = at_feat & cont & valid_n
+            f["albedo2"] = dr.select(at2, si_n.bsdf(new_ray).eval_diffuse_reflectance(si_n, at2), f["albedo2"])
+
         active_n = cont & valid_n & (depth + 2 < settings.max_depth)
         return dict(ray=new_ray, si=si_n, depth=depth + 1, L=L, beta=beta_n, eta=eta, active=active_n,
-                    offs=offs), smp
+                    offs=offs, feats=f, found=s["found"] | at_feat, pending=cont & valid_n & ~active_n), smp
 
     state = dr.while_loop((state, sampler), lambda s, smp: s["active"], body, label="data_gen.gpt")[0]
     offs = state["offs"]
-    return dict(color=state["L"] * w_x, grad=[o["g"] * w_x for o in offs], main=[o["pm"] * w_x for o in offs],
-                shifted=[o["ps"] * w_x for o in offs], emission=e_x0 * w_x,
-                flags=offs[0]["fl"] | offs[1]["fl"] | offs[2]["fl"] | offs[3]["fl"])
+    out = dict(color=state["L"] * w_x, grad=[o["g"] * w_x for o in offs], main=[o["pm"] * w_x for o in offs],
+               shifted=[o["ps"] * w_x for o in offs], emission=e_x0 * w_x,
+               flags=offs[0]["fl"] | offs[1]["fl"] | offs[2]["fl"] | offs[3]["fl"])
+    if record:
+        # The last allowed vertex: trace visits it (no light sample there: no visibility).
+        si, pending = state["si"], state["pending"]
+        bsdf = si.bsdf(state["ray"])
+        at_feat = pending & ~state["found"] & has(bsdf.flags(), mi.BSDFFlags.Smooth)
+        out.update(features_at(state["feats"], si, bsdf, at_feat, Bool(False)))
+    return out

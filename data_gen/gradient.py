@@ -37,10 +37,10 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .integrator import EMISSION, PathSettings, derive_seed, trace
+from .integrator import EMISSION, FEATURE_DIMS, FEATURES, PathSettings, derive_seed, trace
 from .mitsuba_setup import is_vectorized, setup_mitsuba
 from .gpt import NEIGHBOURS, ShiftSettings, trace_gpt
-from .render import DEFAULT_SAMPLES_PER_PASS, camera_ray, camera_samples
+from .render import DEFAULT_SAMPLES_PER_PASS, camera_ray, camera_samples, moments_to_buffers, segment_sums
 from .scenes import load_scene
 from jaxdenoise.buffers import GRADIENT_EMISSION_MODES
 from jaxdenoise.errors import JaxdenoiseError
@@ -93,7 +93,7 @@ def _film_position(px, py, jitter, offset, width: int, height: int):
 
 
 def trace_shifted(scene, *, seed: int, offset: tuple[int, int], n: int, width: int, height: int,
-                  settings: PathSettings):
+                  settings: PathSettings, record: frozenset[str] = frozenset()):
     """Per-sample radiance of one wavefront whose camera samples are shifted by ``offset`` pixels.
 
     Lane ``i`` is sample ``i % n`` of base pixel ``(x, y) = (p % width, p // width)``,
@@ -104,17 +104,18 @@ def trace_shifted(scene, *, seed: int, offset: tuple[int, int], n: int, width: i
     sample dimensions (position, aperture, time, wavelength) are drawn in the same order as
     `data_gen.render` so that offset (0, 0) reproduces its samples exactly.
 
-    Returns the Dr.Jit ``Spectrum``s (unevaluated) of ``width * height * n`` lanes: the radiance and
-    the directly seen emission it holds (`data_gen.integrator.EMISSION`).
+    Returns the Dr.Jit values (unevaluated) of ``width * height * n`` lanes: the radiance and the
+    directly seen emission it holds (`data_gen.integrator.EMISSION`), ``Spectrum``s, and a dict of the
+    features in ``record`` (`data_gen.integrator.trace`).
     """
     sensor, sampler, px, py, jitter = _wavefront(scene, seed=seed, n=n, width=width, height=height)
     ray, weight = camera_ray(sensor, sampler, _film_position(px, py, jitter, offset, width, height))
-    out = trace(scene, sampler, ray, True, settings=settings, record=frozenset({EMISSION}))
-    return out["color"] * weight, out[EMISSION] * weight
+    out = trace(scene, sampler, ray, True, settings=settings, record=frozenset({EMISSION}) | frozenset(record))
+    return out["color"] * weight, out[EMISSION] * weight, {f: out[f] for f in FEATURES if f in record}
 
 
 def trace_reconnect(scene, *, seed: int, n: int, width: int, height: int, settings: PathSettings,
-                    shift: ShiftSettings, separate_emission: bool = True):
+                    shift: ShiftSettings, separate_emission: bool = True, record: frozenset[str] = frozenset()):
     """One wavefront of the reconnection shift (`data_gen.gpt.trace_gpt`): the base camera ray is the
     one `trace_shifted` builds for offset (0, 0) (same samples, so the same base path); the four
     offset rays go through the `NEIGHBOURS` with the same jitter and camera samples."""
@@ -127,7 +128,7 @@ def trace_reconnect(scene, *, seed: int, n: int, width: int, height: int, settin
         rays.append(r)
         weights.append(w)
     out = trace_gpt(scene, sampler, ray, weight, rays, weights, settings=settings, shift=shift,
-                    separate_emission=separate_emission)
+                    separate_emission=separate_emission, record=record)
     out["px"], out["py"] = px, py
     return out
 
@@ -146,6 +147,7 @@ def render_gradients(
     primal: str = "base",
     roughness_threshold: float = ShiftSettings.roughness_threshold,
     direct_emission: str = "separate",
+    record: Any = (),
 ) -> dict[str, Any]:
     """Base image and gradient-domain finite differences, by primary-sample-space replay or by
     Kettunen et al.'s reconnection shift (`data_gen.gpt`).
@@ -176,6 +178,11 @@ def render_gradients(
             first hit emits stays out of ``dx``/``dy``, which are then the differences of
             ``primal - emission``, and is returned as ``emission``; ``"included"``: the gradients
             hold it like every other contribution (no ``emission``). `DIRECT_EMISSION`.
+        record: features (`data_gen.integrator.FEATURES`) recorded along the base paths, returned as
+            `data_gen.render.render_buffers` returns them (``<feature>`` means and, with spp > 1,
+            ``<feature>_var``) and equal to its output for the same seed: the gradient pass
+            replaces the plain buffer pass of a gradient frame (its base image is that pass's
+            colour).
 
     Returns:
         dict of float32 ``HWC`` arrays, 3 channels, linear radiance:
@@ -200,6 +207,9 @@ def render_gradients(
     if direct_emission not in DIRECT_EMISSION:
         raise JaxdenoiseError(f"direct_emission: expected one of {DIRECT_EMISSION}, got {direct_emission!r}")
     separate = direct_emission == "separate"
+    record = frozenset(record)
+    if record - set(FEATURES):
+        raise JaxdenoiseError(f"record: unknown feature(s) {sorted(record - set(FEATURES))}; expected some of {FEATURES}")
     if primal == "gpt" and shift != "reconnect":
         raise JaxdenoiseError("primal='gpt' needs shift='reconnect' (replay has no offset estimates of a pixel)")
     shift_settings = ShiftSettings(roughness_threshold=roughness_threshold)
@@ -244,18 +254,21 @@ def render_gradients(
     flag_counts = np.zeros(3, np.int64)
 
     def add(values: dict, n: int) -> None:
-        # Per-pixel sums and sums of squares (float64 on the host) of per-lane values.
+        # Per-pixel sums and sums of squares (float64 on the host) of per-lane values (Spectrum, or a
+        # feature of FEATURE_DIMS channels): evaluated in one kernel, then summed per pixel in one more
+        # (`segment_sums`; lane i is sample i % n of pixel i // n).
         names = list(values)
-        red = [dr.block_sum(values[k][c], n) for k in names for c in range(3)]
-        red += [dr.block_sum(values[k][c] * values[k][c], n) for k in names for c in range(3)]
-        dr.eval(*red)
-        arrs = [np.asarray(a, dtype=np.float64) for a in red]
-        m = 3 * len(names)
-        for j, k in enumerate(names):
-            s, q = acc.setdefault(k, [np.zeros((npix, 3)), np.zeros((npix, 3))])
-            for c in range(3):
-                s[:, c] += arrs[3 * j + c]
-                q[:, c] += arrs[m + 3 * j + c]
+        dims = [FEATURE_DIMS.get(k, 3) for k in names]
+        comps = [values[k][c] if d == 3 else values[k] for k, d in zip(names, dims) for c in range(d)]
+        dr.eval(*comps)
+        begin = np.arange(npix, dtype=np.int64) * n
+        sums = iter(segment_sums(comps, begin, begin + n))
+        for k, d in zip(names, dims):
+            s, q = acc.setdefault(k, [np.zeros((npix, d)), np.zeros((npix, d))])
+            for c in range(d):
+                a, b = next(sums)
+                s[:, c] += a
+                q[:, c] += b
 
     def finite(v):
         f = mi.Bool(True)
@@ -269,11 +282,11 @@ def render_gradients(
         pseed = derive_seed(seed, "pass", k)  # the same pass seeds as data_gen.render
         kw = dict(seed=pseed, n=n, width=width, height=height, settings=settings)
         if shift == "replay":
-            base, e_b = trace_shifted(scene, offset=OFFSETS["base"], **kw)
-            dr.eval(base, e_b)
-            shx, e_x = trace_shifted(scene, offset=OFFSETS["dx"], **kw)
+            base, e_b, feats = trace_shifted(scene, offset=OFFSETS["base"], record=record, **kw)
+            dr.eval(base, e_b, feats)
+            shx, e_x, _ = trace_shifted(scene, offset=OFFSETS["dx"], **kw)
             dr.eval(shx, e_x)
-            shy, e_y = trace_shifted(scene, offset=OFFSETS["dy"], **kw)
+            shy, e_y, _ = trace_shifted(scene, offset=OFFSETS["dy"], **kw)
             dr.eval(shy, e_y)
             # Guard: a non-finite sample (a 0/0 in a BSDF or a degenerate frame) would poison its
             # pixel and the differences it enters: a non-finite base sample is set to 0, and a pair
@@ -287,17 +300,16 @@ def render_gradients(
                             dy=dr.select(ok_y, (shy - e_y) - (base - e_b), 0.0), emission=dr.select(ok_b, e_b, 0.0))
             else:
                 vals.update(dx=dr.select(ok_x, shx - base, 0.0), dy=dr.select(ok_y, shy - base, 0.0))
+            vals.update(feats)
             add(vals, n)
             del base, shx, shy, e_b, e_x, e_y, vals
         else:
-            out = trace_reconnect(scene, shift=shift_settings, separate_emission=separate, **kw)
-            dr.eval(out)
+            out = trace_reconnect(scene, shift=shift_settings, separate_emission=separate, record=record, **kw)
             ok_b = finite(out["color"])
             ok_g = mi.Bool(ok_b)
             for name in ("grad", "main", "shifted"):
                 for v in out[name]:
                     ok_g &= finite(v)
-            n_invalid += int(dr.count(~ok_g)[0])
             px, py = out["px"], out["py"]
             vals = {"base": dr.select(ok_b, out["color"], 0.0)}
             own = mi.Spectrum(0.0)
@@ -313,11 +325,16 @@ def render_gradients(
                 if oy < 0:
                     inside &= py >= -oy
                 vals[f"g{j}"] = dr.select(ok_g, out["grad"][j], 0.0)
-                vals[f"s{j}"] = dr.select(ok_g, out["shifted"][j], 0.0)
-                own += dr.select(ok_g & inside, out["main"][j], 0.0)
-            vals["own"] = own
+                if primal == "gpt":  # the pair estimates only make the G-PT primal
+                    vals[f"s{j}"] = dr.select(ok_g, out["shifted"][j], 0.0)
+                    own += dr.select(ok_g & inside, out["main"][j], 0.0)
+            if primal == "gpt":
+                vals["own"] = own
             if separate:
                 vals["emission"] = dr.select(ok_b, out["emission"], 0.0)
+            vals.update({f: out[f] for f in FEATURES if f in record})
+            dr.eval(ok_g, out["flags"], vals)  # the trace and what is summed of it: one kernel
+            n_invalid += int(dr.count(~ok_g)[0])
             add(vals, n)
             flags = np.asarray(out["flags"], dtype=np.uint32)
             for b in range(3):
@@ -342,7 +359,6 @@ def render_gradients(
             out[key], out[key + "_var"] = mean_var(name)
     else:
         g = [mean_var(f"g{j}") for j in range(len(NEIGHBOURS))]
-        sh = [mean_var(f"s{j}") for j in range(len(NEIGHBOURS))]
         # dx[y, x]: the right shifts of (x, y) plus the left shifts of (x+1, y), reversed in sign.
         dx, dx_var = np.zeros((height, width, 3)), np.zeros((height, width, 3))
         dx[:, :-1] = g[0][0][:, :-1] - g[2][0][:, 1:]
@@ -356,6 +372,7 @@ def render_gradients(
         else:
             # Pixel (x, y): its own MIS shares toward every neighbour inside the image, plus each such
             # neighbour's shares shifted onto it, averaged over the pairs.
+            sh = [mean_var(f"s{j}") for j in range(len(NEIGHBOURS))]
             own, own_var = mean_var("own")
             tot, tot_var = own.copy(), own_var.copy()
             pairs = np.zeros((height, width, 1))
@@ -378,6 +395,9 @@ def render_gradients(
                               "half_vector": float(flag_counts[1] / total), "failed": float(flag_counts[2] / total)}
     if separate:
         out["emission"], out["emission_var"] = mean_var("emission")
+    # the features as render_buffers gives them (means; with spp > 1 the channel-mean variance of the mean)
+    out.update(moments_to_buffers({f: tuple(a.reshape(height, width, -1) for a in acc[f])
+                                   for f in FEATURES if f in record}, int(spp)))
     for key in list(out):
         if isinstance(out[key], np.ndarray):
             out[key] = out[key].astype(np.float32)

@@ -1,8 +1,9 @@
 """Per-pixel means and variances of the mean, rendered in bounded passes.
 
 All samples of a pass are traced in one wavefront (sample index = pixel * n + s), then reduced per pixel
-with ``dr.block_sum`` into sums and sums of squares; passes accumulate in float64 on the host, so memory
-is bounded by ``samples_per_pass`` whatever the sample count (the references use the same code).
+into sums and sums of squares in float64 by one more kernel (`segment_sums`); passes accumulate in
+float64 on the host, so memory is bounded by ``samples_per_pass`` whatever the sample count (the
+references and the gradient-domain renders use the same code).
 """
 from __future__ import annotations
 
@@ -151,15 +152,13 @@ def render_moments(scene, *, spp: int, seed: int, settings: PathSettings, record
             if n > 1:
                 idx = idx // dr.opaque(mi.UInt32, n)
             comps = _traced_components(scene, sensor, sampler, idx, width, settings, record, rough, names)
-            sums = [dr.block_sum(c, n) for c in comps] + [dr.block_sum(c * c, n) for c in comps]
-            dr.eval(*sums)
-            arrs = [np.asarray(a, dtype=np.float64) for a in sums]
-            nc = len(comps)
+            begin = np.arange(npix, dtype=np.int64) * n
+            sums = segment_sums(comps, begin, begin + n)
             i = 0
             for name in names:
                 c = _channels(name)
-                acc[name][0][:] += np.stack(arrs[i:i + c], -1)
-                acc[name][1][:] += np.stack(arrs[nc + i:nc + i + c], -1)
+                acc[name][0][:] += np.stack([a for a, _ in sums[i:i + c]], -1)
+                acc[name][1][:] += np.stack([b for _, b in sums[i:i + c]], -1)
                 i += c
             del comps, sums
             done += n
@@ -194,7 +193,7 @@ def render_counts(scene, *, parts: Sequence[np.ndarray], seed: int, settings: Pa
     Vectorized variants trace wavefronts of at most ``samples_per_pass`` samples (at least one
     pixel's), cut at pixel boundaries, each pixel's samples contiguous and drawn as `render_moments`
     draws them (one part of ``spp`` samples everywhere gives its samples when the frame fits one
-    wavefront); the per-pixel sums are accumulated on the device (`_segment_sums`), so only
+    wavefront); the per-pixel sums are accumulated on the device (`segment_sums`), so only
     per-pixel sums come back.
     """
     record = _check_record(record)
@@ -253,7 +252,7 @@ def _render_parts(scene, sensor, parts, seed, settings, record, rough, accs, nam
             bounds = [np.cumsum(c) - c]
             for part in parts:
                 bounds.append(bounds[-1] + part[start:end])
-            res = [_segment_sums(comps, bounds[q], bounds[q + 1]) for q in range(len(parts))]
+            res = [segment_sums(comps, bounds[q], bounds[q + 1]) for q in range(len(parts))]
             for q, acc in enumerate(accs):
                 arr = [(np.asarray(a, np.float64), np.asarray(b, np.float64)) for a, b in res[q]]
                 i = 0
@@ -269,7 +268,7 @@ def _render_parts(scene, sensor, parts, seed, settings, record, rough, accs, nam
         start = end
 
 
-def _segment_sums(comps, begin: np.ndarray, end: np.ndarray) -> list:
+def segment_sums(comps, begin: np.ndarray, end: np.ndarray) -> list:
     """Per pixel, ``(sum, sum of squares)`` of each evaluated per-sample array in ``comps`` over the
     pixel's samples ``[begin, end)``: one symbolic Dr.Jit loop, a lane per pixel walking its own
     samples by gathers, accumulating in float64 (deterministic and free of the cancellation a

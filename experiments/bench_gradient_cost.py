@@ -36,7 +36,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from data_gen.gradient import SHIFTS, render_gradients  # noqa: E402
-from data_gen.integrator import PathSettings  # noqa: E402
+from data_gen.integrator import FEATURES, PathSettings  # noqa: E402
 from data_gen.mitsuba_setup import setup_mitsuba  # noqa: E402
 from data_gen.render import render_buffers  # noqa: E402
 from data_gen.scenes import build_scene, default_scene, load_scene  # noqa: E402
@@ -104,8 +104,13 @@ def main(argv=None) -> int:
         scene = load_scene(d)
         ref = render_buffers(scene, spp=args.ref_spp, seed=987654, settings=settings)["color"].astype(np.float64)
         t_plain, ts_plain = median_time(lambda: render_buffers(scene, spp=args.spp, seed=1, settings=settings), args.runs)
+        # the frame a dataset writes: every feature with the colour (issue 37 item 3's measure)
+        t_buf, ts_buf = median_time(lambda: render_buffers(scene, spp=args.spp, seed=1, settings=settings,
+                                                           record=FEATURES), args.runs)
         for shift in SHIFTS:
             t_grad, ts_grad = median_time(lambda: render_gradients(scene, spp=args.spp, seed=1, shift=shift), args.runs)
+            t_frame, ts_frame = median_time(lambda: render_gradients(scene, spp=args.spp, seed=1, shift=shift,
+                                                                     record=FEATURES), args.runs)
             ratio = t_grad / t_plain
             # the variance of gradients of the whole image (the directly seen emission included), which is
             # what the difference of two independent renders estimates
@@ -119,6 +124,8 @@ def main(argv=None) -> int:
                 "scene": name, "shift": shift, "size": args.size, "spp": args.spp,
                 "plain_s": t_plain, "gradient_s": t_grad, "time_ratio": ratio,
                 "plain_runs_s": ts_plain, "gradient_runs_s": ts_grad,
+                "buffers_s": t_buf, "frame_s": t_frame, "buffers_runs_s": ts_buf, "frame_runs_s": ts_frame,
+                "frame_ratio": t_frame / t_buf, "two_pass_ratio": (t_buf + t_grad) / t_buf,
                 "var_ratio_dx": float(vx.sum() / ix.sum()), "var_ratio_dy": float(vy.sum() / iy.sum()),
                 "median_pixel_var_ratio_dx": float(np.median(vx[mx] / ix[mx])),
                 "median_pixel_var_ratio_dy": float(np.median(vy[my] / iy[my])),
@@ -159,8 +166,8 @@ def page(res: dict) -> str:
     lines = [
         "# Gradient-domain buffers: replay vs reconnection shift, cost, variance, reconstruction",
         "",
-        "| scene | shift | time ratio | var ratio dx / dy | median px ratio dx / dy | reconnected | half-vector | failed |",
-        "|---|---|---|---|---|---|---|---|",
+        "| scene | shift | frame ratio (one pass) | frame ratio (two passes) | time ratio | var ratio dx / dy | median px ratio dx / dy | reconnected | half-vector | failed |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         if r["shift"] == "replay" and r["shift_stats"] is None:
@@ -169,12 +176,18 @@ def page(res: dict) -> str:
             st = r["shift_stats"]
             fr = f"{st['reconnected']:.3f} | {st['half_vector']:.3f} | {st['failed']:.3f}"
         lines.append(
-            f"| {r['scene']:s} | {r['shift']:s} | {r['time_ratio']:.2f} | {r['var_ratio_dx']:.3f} / {r['var_ratio_dy']:.3f} | "
+            f"| {r['scene']:s} | {r['shift']:s} | {r['frame_ratio']:.2f} | {r['two_pass_ratio']:.2f} | "
+            f"{r['time_ratio']:.2f} | {r['var_ratio_dx']:.3f} / {r['var_ratio_dy']:.3f} | "
             f"{r['median_pixel_var_ratio_dx']:.4f} / {r['median_pixel_var_ratio_dy']:.4f} | {fr} |")
     lines += [
         "",
-        "`plain` = `render_buffers` (colour only); `gradient` = `render_gradients` (replay: base + 2 replayed "
-        "paths per sample; reconnect: base + 4 offset paths). Time ratio = gradient / plain at equal spp.",
+        "Frame ratios (issue 37's measure): the time of a whole gradient frame (colour, every feature of "
+        "`data_gen.integrator.FEATURES`, dx, dy) over that of the same frame's buffers without gradients "
+        "(`render_buffers` with every feature), at equal spp. One pass: `render_gradients(record=FEATURES)`, "
+        "whose base paths record the colour and the features (bit-identical to `render_buffers`'; data_gen's "
+        "way since 0.8.1); two passes: `render_buffers` then `render_gradients` (data_gen's way before), "
+        "measured in the same run. Time ratio = `render_gradients` (no features; replay: base + 2 replayed "
+        "paths per sample; reconnect: base + 4 offset paths) / `render_buffers` (colour only) at equal spp.",
         "Variance ratio = sum(dx_var) / sum(var_a[x] + var_b[x+1]) (two independent plain renders; dx, dy "
         "here hold the directly seen emission, `direct_emission=\"included\"`, the quantity such a difference "
         "estimates); "

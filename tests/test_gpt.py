@@ -242,3 +242,26 @@ def test_shot_records_the_shift(tmp_path):
     assert rec2["files"]["spp0002_00.exr"]["key"]["shift"] == "replay"
     assert rec2["files"]["reference.exr"]["sha256"] == ref_sha
     assert json.loads((tmp_path / "shot.json").read_text())["files"]["spp0002_00.exr"]["key"]["shift"] == "replay"
+
+
+@pytest.mark.parametrize("shift", ["reconnect", "replay"])
+def test_the_gradient_pass_records_the_buffer_pass_features(shift):
+    """A gradient frame needs no plain buffer pass: the base paths of the gradient render record the
+    colour and every feature exactly as `render_buffers` does for the same seed (bit-identical, with
+    their variances), on glass, plastic and rough metal, also where the path length cap makes the
+    last allowed vertex the feature vertex (max_depth 1 and 2)."""
+    from data_gen.integrator import FEATURES
+    from data_gen.scenes import build_scene, load_scene
+
+    scene = load_scene(build_scene("objects", 2, width=RES, height=RES))
+    for depth in (1, 2, 8):
+        plain = render_buffers(scene, spp=2, seed=3, settings=PathSettings(max_depth=depth), record=FEATURES)
+        g = render_gradients(scene, spp=2, seed=3, max_depth=depth, shift=shift, record=FEATURES)
+        np.testing.assert_array_equal(g["primal"], plain["color"])
+        np.testing.assert_array_equal(g["primal_var"], plain["color_var"])
+        for f in FEATURES:
+            np.testing.assert_array_equal(g[f], plain[f], err_msg=f"{f}, max_depth {depth}")
+            np.testing.assert_array_equal(g[f + "_var"], plain[f + "_var"], err_msg=f"{f}_var, max_depth {depth}")
+        assert float(np.max(plain["albedo2"])) > 0 and float(np.max(plain["visibility"])) > 0 or depth == 1
+    with pytest.raises(ValueError, match="record: unknown feature"):
+        render_gradients(scene, spp=1, seed=0, record=("albedo", "colour"))
