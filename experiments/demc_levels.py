@@ -46,25 +46,30 @@ def frame_levels(out: np.ndarray, ref: np.ndarray) -> list[float]:
 
 
 def measure(methods: list[str], folders: list[str], spps: list[int]) -> dict:
+    from jaxdenoise import metrics
     from jaxdenoise.api import resolve
     from jaxdenoise.data import discover, renders_by_spp
     from jaxdenoise.inference import inference_fn, prepare
     from jaxdenoise.io import read_buffers, read_image
 
     res = {"box": BOX, "floor": FLOOR, "spps": spps, "folders": folders, "methods": {}}
-    for name in methods:
-        m, params = resolve(name)
+    for entry in methods:
+        name, _, weights = entry.partition("=")  # "demc" or "LABEL=WEIGHTS_FOLDER" (a demc weights folder)
+        m, params = resolve("demc" if weights else name, weights or None)
         fn = inference_fn(m)
         rec = {"config": {k: v for k, v in dataclasses.asdict(m.config).items() if k in ("exposure", "train_spps")},
                "levels": {}, "exposure": {}}
+        rec["scores"] = {}
         for folder in folders:
-            per_rate = {}
+            per_rate, scores = {}, {}
             for shot in discover(folder):
                 ref = read_image(shot.reference)
                 for spp, renders in sorted(renders_by_spp(shot, set(spps)).items()):
                     b, _ = read_buffers(renders[0].path)
                     y = np.asarray(fn(params, prepare(m, b)))
                     per_rate.setdefault(str(spp), []).append(frame_levels(y, ref))
+                    scores.setdefault(str(spp), []).append([float(metrics.relmse(y, ref[..., :3])),
+                                                            float(metrics.ssim(y, ref[..., :3]))])
                     if spp == 4 and folder not in rec["exposure"]:
                         base = y.astype(np.float64)
                         worst = 0.0
@@ -75,6 +80,7 @@ def measure(methods: list[str], folders: list[str], spps: list[int]) -> dict:
                         rec["exposure"][folder] = {"frame": str(renders[0].path.relative_to(Path(folder).parent)),
                                                    "factors": list(FACTORS), "max_rel_diff": worst}
             rec["levels"][folder] = per_rate
+            rec["scores"][folder] = scores
             print(name, folder, {s: np.round(np.median(v, 0), 3).tolist() for s, v in per_rate.items()}, flush=True)
         res["methods"][name] = rec
     return res
@@ -86,17 +92,23 @@ def page(res: dict) -> str:
              f"median over the pixels where the reference's box mean is above {res['floor']:g} (frame border "
              "left out); per rate the median over frames, and the frame furthest from 1 (issue 33 asks for "
              "every channel within 3 % of 1). Emitters are counted with the surfaces (no emitter mask in "
-             "these frames).", ""]
+             "these frames)." + (" RelMSE and SSIM (docs/metrics.md): means over the same frames."
+                                 if all("scores" in r for r in res["methods"].values()) else ""), ""]
     for folder in res["folders"]:
-        lines += [f"## `{folder}`", "", "| method | spp | frames | R | G | B | furthest frame (channel) |",
-                  "|---|---:|---:|---:|---:|---:|---:|"]
+        scored = all("scores" in rec for rec in res["methods"].values())  # (older runs recorded levels only)
+        lines += [f"## `{folder}`", "", "| method | spp | frames | R | G | B | furthest frame (channel) |"
+                  + (" RelMSE | SSIM |" if scored else ""), "|---|---:|---:|---:|---:|---:|---:|" + ("---:|---:|" if scored else "")]
         for name, rec in res["methods"].items():
             for spp, frames in rec["levels"][folder].items():
                 lv = np.asarray(frames)
                 med = np.median(lv, 0)
                 far = lv.flat[int(np.argmax(np.abs(lv - 1.0)))]
-                lines.append(f"| {name} | {spp} | {len(frames)} | {num(med[0], '.3f')} | {num(med[1], '.3f')} | "
-                             f"{num(med[2], '.3f')} | {num(far, '.3f')} |")
+                row = (f"| {name} | {spp} | {len(frames)} | {num(med[0], '.3f')} | {num(med[1], '.3f')} | "
+                       f"{num(med[2], '.3f')} | {num(far, '.3f')} |")
+                if scored:
+                    sc = np.mean(rec["scores"][folder][spp], 0)
+                    row += f" {num(float(sc[0]), '.4f')} | {num(float(sc[1]), '.3f')} |"
+                lines.append(row)
         lines.append("")
     lines += ["## Exposure", "", "`max |f(k x) - k f(x)| / max |k f(x)|` over k in "
               + ", ".join(f"{k:g}" for k in FACTORS) + " on one 4-spp frame per folder.", "",
@@ -112,7 +124,8 @@ def page(res: dict) -> str:
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", required=True, help="comma-separated data_gen folders")
-    ap.add_argument("--methods", default="demc,demc-paper")
+    ap.add_argument("--methods", default="demc,demc-paper",
+                    help="comma-separated method names, or LABEL=FOLDER for a demc weights folder (a run's best/)")
     ap.add_argument("--spps", default="1,4,16,64")
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)

@@ -39,8 +39,11 @@ render (its cached float32 fields, ``spp`` and camera matrices; never the refere
 values in the index; every crop, sequence crop and whole render drawn from the cache carries them as
 extra entries ``"stat.<name>"`` (`STAT`): ``(n, k)`` for crops, ``(n, T, k)`` for sequence crops,
 one value per frame of the sequence, each frame's own. The statistics are of quantities the
-augmentations only move (positions, depths), so they pass through `augment` unchanged (backward
-playback reverses them with the frames). A method's input builder reads the carried value
+augmentations only move (positions, depths) pass through `augment` unchanged (backward playback
+reverses them with the frames); a statistic named in `RADIANCE_STATS` is a per-channel radiance
+``(..., 3)`` (DEMC's clipped mean colour) and is multiplied by the colour modulation ``m`` with the
+colour, so a modulated crop carries the statistic of its modulated whole render (exactly where the
+statistic is linear in the colour). A method's input builder reads the carried value
 (`carried_stat`) and otherwise computes it from the array it is given, which at inference is the
 whole frame. A cache built before a statistic was declared gets it on opening, computed from the
 cached whole renders, and its index is rewritten (no EXR is decoded again); the name of a statistic
@@ -74,10 +77,12 @@ from .fsutil import atomic_path, write_json
 from .errors import JaxdenoiseError
 
 __all__ = ["build_cache", "Cache", "ExportedCache", "load_export", "open_training_data", "default_cache_dir", "augment", "rotate90", "flip_lr",
-           "carried_stat", "carried_stats", "RADIANCE", "BOUNDED", "STAT"]
+           "carried_stat", "carried_stats", "RADIANCE", "RADIANCE_STATS", "BOUNDED", "STAT"]
 
 # Fields that scale with radiance (colour modulation multiplies them by m; variances by m^2).
 RADIANCE = ("color", "dx", "dy", "emission", "reference")
+# Per-frame statistics (by name) that are per-channel radiance, (..., 3): modulated with the colour.
+RADIANCE_STATS = ("color_mean",)
 # Bounded features stored as 8 bits in an export (value range).
 BOUNDED = {"normal": (-1.0, 1.0), "albedo": (0.0, 1.0), "albedo2": (0.0, 1.0), "visibility": (0.0, 1.0),
            "roughness": (0.0, 1.0)}
@@ -217,6 +222,9 @@ def augment(item: dict[str, np.ndarray], rng: np.random.Generator, *, rotate: bo
                 images[f] = images[f] * m
             elif f == "color_var":
                 images[f] = images[f] * m * m
+        for name in RADIANCE_STATS:
+            if STAT + name in rest:
+                rest[STAT + name] = np.asarray(rest[STAT + name], np.float32) * m
     if reverse and rng.random() < 0.5:
         images = {f: np.ascontiguousarray(v[::-1]) for f, v in images.items()}
         rest = {f: (v[::-1] if np.ndim(v) >= 1 else v) for f, v in rest.items()}

@@ -13,6 +13,7 @@ import pytest
 from jaxdenoise import nn
 from jaxdenoise.buffers import Buffers
 from jaxdenoise.methods import demc, get
+from jaxdenoise.pipeline import augment
 
 SMALL = demc.Config(widths=(4, 6, 8, 8, 8), fusion_width=4)
 
@@ -177,6 +178,75 @@ def test_exposure_frame_scales_the_output_with_the_input(variant):
     # "none" keeps the paper's inputs (the shipped demc-paper weights were trained that way)
     none = dataclasses.replace(cfg, exposure="none")
     np.testing.assert_allclose(np.asarray(demc.inputs(p, fr, none)[0]), fr.color ** (1 / 2.2), rtol=1e-5)
+
+
+def test_color_mean_is_the_clipped_level_per_channel_and_follows_the_modulation():
+    """`color_mean`'s luminance is the clipped mean luminance (`exposure_level`: pixels above the
+    99.9 % luminance quantile scaled down to it, hue kept); a crop drawn with colour modulation m
+    carries m times its frame's value, which is the modulated frame's own wherever no pixel is
+    clipped (rtol 1e-5), and the exposure scale uses it."""
+    fr = _frame(40, 24, seed=7)
+    c = fr.color.copy()
+    c[3, 4] = (50.0, 5.0, 1.0)
+    lum = 0.2126 * c[..., 0] + 0.7152 * c[..., 1] + 0.0722 * c[..., 2]
+    clip = np.sort(lum.ravel())[int(np.floor(0.999 * (lum.size - 1)))]
+    np.testing.assert_allclose(float(demc.exposure_level(c)[0]), np.minimum(lum, clip).mean(), rtol=1e-5)
+    cm = np.asarray(demc.color_mean(c))
+    assert cm.shape == (3,) and cm[0] < c[..., 0].mean()  # the hot pixel clipped, its hue kept
+    frame = {"color": fr.color, "reference": fr.color}
+    item = {**frame, "stat.color_mean": np.asarray(demc.color_mean(fr.color))}
+    out = augment(item, np.random.default_rng(3), rotate=False, flip=False)
+    m = out["color"][0, 0] / fr.color[0, 0]
+    np.testing.assert_allclose(out["stat.color_mean"], np.asarray(demc.color_mean(fr.color * m)), rtol=1e-5)
+    cfg = dataclasses.replace(SMALL, exposure="frame")
+    np.testing.assert_allclose(np.asarray(demc.exposure_scale(out, cfg)).ravel(),
+                               np.asarray(demc.exposure_scale({"color": fr.color * m}, cfg)).ravel(), rtol=1e-5)
+
+
+def test_skip_init_readings_of_eq3():
+    """Eq. 3's readings: "decoder" passes the upsampled decoder block through ([I, 0, 0]), "all" sums
+    the decoder and both encoder blocks ([I, I, I]); zero bias either way; only the init differs."""
+    for reading, blocks in (("decoder", (1, 0, 0)), ("all", (1, 1, 1))):
+        cfg = dataclasses.replace(SMALL, skip_init=reading)
+        p = demc.init(jax.random.PRNGKey(0), cfg)
+        for lvl, fuse in p["fuse"].items():
+            w, b = np.asarray(fuse["0"]["w"])[0, 0], np.asarray(fuse["0"]["b"])
+            c = w.shape[1]
+            for k, v in enumerate(blocks):
+                np.testing.assert_array_equal(w[k * c:(k + 1) * c], v * np.eye(c))
+            assert not b.any()
+    assert demc.num_params(dataclasses.replace(SMALL, skip_init="all")) == demc.num_params(SMALL)
+
+
+def test_loss_scale_and_level_term_move_the_optimum_toward_the_mean_reference():
+    """Two references for one output (an input that admits both): Eq. 5's gradient vanishes below
+    their mean (dark references weigh more); with ``loss_scale = "output"`` it vanishes at the mean;
+    the level term (block means) pulls Eq. 5's optimum toward the block's mean (hand-computed)."""
+    refs = jnp.asarray([0.2, 1.0])
+
+    def grad(y, scale):
+        cfg = dataclasses.replace(SMALL, loss_scale=scale)
+        return float(jax.grad(lambda v: demc.relative_loss(jnp.full(2, v), refs, cfg))(y))
+
+    assert abs(grad(0.6, "output")) < 1e-6
+    assert grad(0.6, "reference") > 0.1  # the minimiser is darker than the mean
+    # the level term: references alternating 0.2 / 1.0 in 8x8 blocks (each block's mean is 0.6); the
+    # uniform output that minimises the loss moves from Eq. 5's 0.23 to 0.47 with level_weight 8
+    refs8 = jnp.asarray(np.where((np.add.outer(np.arange(8), np.arange(8)) % 2)[..., None], 1.0, 0.2)
+                        * np.ones((1, 8, 8, 3)), jnp.float32)
+    vs = np.linspace(0.2, 1.0, 801)
+
+    def best(cfg):
+        return vs[int(np.argmin([float(demc.relative_loss(jnp.full_like(refs8, v), refs8, cfg)) for v in vs]))]
+
+    plain, level = best(SMALL), best(dataclasses.replace(SMALL, level_weight=8.0))
+    assert plain == pytest.approx(0.2315, abs=2e-3) and level == pytest.approx(0.4658, abs=2e-3)
+    with pytest.raises(ValueError, match="level_weight"):
+        demc.num_params(demc.Config(level_weight=-1.0))
+    with pytest.raises(ValueError, match="loss_scale"):
+        demc.num_params(demc.Config(loss_scale="ref"))
+    with pytest.raises(ValueError, match="skip_init"):
+        demc.num_params(demc.Config(skip_init="III"))
 
 
 def test_bad_config_is_named():

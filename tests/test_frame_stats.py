@@ -164,12 +164,12 @@ def test_exports_keep_the_statistics(cache_env, tmp_path):
     value for value, and whatever is drawn from the export carries them, as a draw from the cache."""
     ds = demc.make_dataset(cache_env, DEMC, progress=False)
     summary = ds.export(tmp_path / "crops.npz", n=5, size=C, rng=np.random.default_rng(3))
-    assert summary["stats"] == ["exposure_level", "position_mean", "position_std"]
+    assert summary["stats"] == ["color_mean", "position_mean", "position_std"]
     r = np.random.default_rng(3)
     ds.crops(1, C, r, augment=False)  # the export's probe draw
     want = ds.crops(summary["count"], C, r, augment=False)
     ex = demc.make_dataset(tmp_path / "crops.npz", DEMC, progress=False)
-    for n in ("exposure_level", "position_mean", "position_std"):
+    for n in ("color_mean", "position_mean", "position_std"):
         np.testing.assert_array_equal(ex.stats[n], want["stat." + n])
     drawn = demc.batch(ex, 0, DEMC, np.random.default_rng(0))
     assert {tuple(v) for v in drawn["stat.position_mean"]} <= {tuple(v) for v in ex.stats["position_mean"]}
@@ -218,7 +218,7 @@ def test_an_export_without_the_statistics_is_refused(cache_env, tmp_path):
     plain = pipeline.build_cache(cache_env, demc.FEATURES, tmp_path / "cache", spps=(4,))  # no statistics
     plain.export(tmp_path / "old.npz", n=4, size=C, rng=np.random.default_rng(0))
     with pytest.raises(JaxdenoiseError, match=r"old\.npz: the export lacks the per-frame statistic\(s\) "
-                                              r"\['exposure_level', 'position_mean', 'position_std'\]"):
+                                              r"\['color_mean', 'position_mean', 'position_std'\]"):
         demc.make_dataset(tmp_path / "old.npz", DEMC, progress=False)
     # a method that declares none (global position z-score, the paper's exposure) reads it as before
     none = demc.Config(position_norm="global", exposure="none", train_spps=(4,))

@@ -54,8 +54,8 @@ from ..nn.state import call
 from ..errors import JaxdenoiseError
 from ..pipeline import carried_stat, carried_stats
 
-__all__ = ["Config", "needs", "init", "init_from_data", "apply", "forward", "loss", "make_dataset", "batch",
-           "inputs", "frame_stats", "position_moments", "exposure_level", "exposure_scale", "num_params", "widths_of",
+__all__ = ["Config", "needs", "init", "init_from_data", "apply", "forward", "loss", "relative_loss", "make_dataset", "batch",
+           "inputs", "frame_stats", "position_moments", "color_mean", "exposure_level", "exposure_scale", "num_params", "widths_of",
            "FEATURES", "TRAIN", "FROZEN", "WEIGHTS"]
 # Pixels of context a tile needs on each side (`jaxdenoise.tiling`), measured on a real frame
 # (docs/results/tiling/): with the 0.8.0 weights max |tiled - whole| / (|whole| + 0.01) of 1.9e-3 and
@@ -69,6 +69,8 @@ EXPOSURE_LEVEL = 0.2
 EXPOSURE_CLIP_QUANTILE = 0.999
 EXPOSURES = ("none", "frame")
 RECIPES = ("", "paper")
+SKIP_INITS = ("decoder", "all")
+LOSS_SCALES = ("reference", "output")
 
 # The 12 feature channels of Sec. 3.1, in the order they are stacked.
 FEATURES: tuple[str, ...] = ("normal", "position", "albedo", "albedo2")
@@ -97,6 +99,20 @@ class Config:
     # The training recipe the weights folder is named after: "" (the default weights: every rate,
     # exposure "frame") or "paper" (Sec. 4.1: 4 spp, the paper's input; registered as "demc-paper").
     recipe: str = dataclasses.field(default="", metadata={"training": True})
+    # Eq. 3's reading (the equation is garbled in the text, docs/methods/demc.md): "decoder" inits each
+    # skip fusion as [I, 0, 0] (identity on the decoder block, zero on the encoder blocks); "all" as
+    # [I, I, I] (the sum of the three blocks, Mao et al.'s additive skips). Zero bias either way.
+    skip_init: str = dataclasses.field(default="decoder", metadata={"training": True})
+    # The loss's per-pixel scale: "reference" is Eq. 5 (divided by r^2 + eps); "output" divides by the
+    # output's own (y^2 + eps), held constant in the gradient (Lehtinen et al. 2018's relative MSE for
+    # noisy targets: its stationary point is the conditional mean, where Eq. 5's is darker).
+    loss_scale: str = dataclasses.field(default="reference", metadata={"training": True})
+    # A level term beside Eq. 5 (ours, issue 33): `level_weight` times the same relative MSE between
+    # `level_pool` x `level_pool` block means of output and reference; 0 = Eq. 5 alone. A block's mean
+    # is nearly fixed by the input, so its reference-weighted error has no pull toward dark
+    # references, and it counteracts the per-pixel term's (docs/methods/demc.md).
+    level_weight: float = dataclasses.field(default=0.0, metadata={"training": True})
+    level_pool: int = dataclasses.field(default=8, metadata={"training": True})
     train_crop: int = 96
     train_batch: int = 32
 
@@ -122,6 +138,13 @@ def _check(config: Config) -> None:
         raise JaxdenoiseError(f"demc: config.position_norm is {config.position_norm!r}; expected 'frame' or 'global'")
     if config.recipe not in RECIPES:
         raise JaxdenoiseError(f"demc: config.recipe is {config.recipe!r}; expected one of {RECIPES}")
+    if config.skip_init not in SKIP_INITS:
+        raise JaxdenoiseError(f"demc: config.skip_init is {config.skip_init!r}; expected one of {SKIP_INITS}")
+    if config.loss_scale not in LOSS_SCALES:
+        raise JaxdenoiseError(f"demc: config.loss_scale is {config.loss_scale!r}; expected one of {LOSS_SCALES}")
+    if not config.level_weight >= 0 or int(config.level_pool) < 1:
+        raise JaxdenoiseError(f"demc: config.level_weight must be >= 0 and config.level_pool >= 1, got "
+                              f"{config.level_weight!r} and {config.level_pool!r}")
     if config.exposure not in EXPOSURES:
         raise JaxdenoiseError(f"demc: config.exposure is {config.exposure!r}; expected one of {EXPOSURES}")
     if not config.gamma > 0:
@@ -184,11 +207,12 @@ def _layers(config: Config, widths: tuple[int, ...]) -> dict:
     dual = config.variant in ("demc", "nosn")
     ways = 3 if dual else 2
     g = config.xavier_gain
+    skip = (1.0,) + ((0.0,) if config.skip_init == "decoder" else (1.0,)) * (ways - 1)  # Eq. 3
     layers = {"enc_c": [_unit(w, config.convs_per_unit, g) for w in widths],
               "latent": _unit(widths[-1], config.latent_convs, g),
               "up": [nn.serial(nn.ConvTranspose(widths[i], 4, stride=2, w_init=nn.bilinear_init(2)), _relu())
                      for i in range(L)],
-              "fuse": [nn.serial(nn.Conv(widths[i], 1, w_init=nn.identity_init((1.0,) + (0.0,) * (ways - 1))),
+              "fuse": [nn.serial(nn.Conv(widths[i], 1, w_init=nn.identity_init(skip)),
                                  _relu()) for i in range(L)],
               "out": _conv(3, gain=g)}
     if dual:
@@ -292,30 +316,44 @@ def position_moments(p: jax.Array) -> tuple[jax.Array, jax.Array]:
     return mu[..., 0, 0, :], sd[..., 0, 0, :]
 
 
-def exposure_level(color: Any) -> jax.Array:
-    """The exposure statistic of ``exposure = "frame"`` (ours): the mean luminance of a frame with
-    pixels above its `EXPOSURE_CLIP_QUANTILE` luminance clipped there (a few fireflies or a small
-    light do not set it); ``(..., H, W, 3)`` -> one value per frame ``(...)``. Homogeneous of degree
-    1 (a frame k times brighter has a k times larger level), so ``f(k x) = k f(x)`` holds for the
-    method up to rounding. Non-finite and negative values count as 0. Shape ``(..., 1)`` (a
-    per-frame statistic is a small vector, `jaxdenoise.pipeline`)."""
+def _luminance(c: jax.Array) -> jax.Array:
+    return 0.2126 * c[..., 0] + 0.7152 * c[..., 1] + 0.0722 * c[..., 2]
+
+
+def color_mean(color: Any) -> jax.Array:
+    """The per-channel mean colour of a frame with every pixel whose luminance is above the frame's
+    `EXPOSURE_CLIP_QUANTILE` scaled down to it (hue kept: a few fireflies or a small light do not set
+    it); ``(..., H, W, 3)`` -> ``(..., 3)``. Non-finite and negative values count as 0. The training
+    pipeline carries it with every crop and multiplies it by the crop's colour modulation
+    (`jaxdenoise.pipeline.RADIANCE_STATS`), so a modulated crop is normalised by its modulated
+    frame's level."""
     c = jnp.asarray(color, jnp.float32)
     c = jnp.where(jnp.isfinite(c), jnp.maximum(c, 0.0), 0.0)
-    lum = 0.2126 * c[..., 0] + 0.7152 * c[..., 1] + 0.0722 * c[..., 2]
-    lum = lum.reshape(lum.shape[:-2] + (-1,))
-    clip = jnp.quantile(lum, EXPOSURE_CLIP_QUANTILE, axis=-1, keepdims=True, method="lower")
-    return jnp.mean(jnp.minimum(lum, clip), axis=-1, keepdims=True)
+    lum = _luminance(c)
+    flat = lum.reshape(lum.shape[:-2] + (-1,))
+    clip = jnp.quantile(flat, EXPOSURE_CLIP_QUANTILE, axis=-1, method="lower")[..., None, None]
+    keep = jnp.where(lum > clip, clip / jnp.where(lum > clip, lum, 1.0), 1.0)
+    return jnp.mean(c * keep[..., None], axis=(-3, -2))
+
+
+def exposure_level(color: Any) -> jax.Array:
+    """The exposure statistic of ``exposure = "frame"`` (ours): the luminance of `color_mean`, i.e.
+    the mean luminance of the frame with pixels above its `EXPOSURE_CLIP_QUANTILE` luminance
+    clipped there; ``(..., H, W, 3)`` -> ``(..., 1)``. Homogeneous of degree 1 (a frame k times
+    brighter has a k times larger level), so ``f(k x) = k f(x)`` holds for the method up to
+    rounding."""
+    return _luminance(color_mean(color))[..., None]
 
 
 def frame_stats(config: Config) -> dict:
     """The per-frame statistics of `inputs` (`jaxdenoise.methods.protocol`): with ``position_norm =
     "frame"`` the world position's mean and standard deviation over the whole frame
-    (`position_moments`), with ``exposure = "frame"`` the colour's `exposure_level`; the training
+    (`position_moments`), with ``exposure = "frame"`` the colour's `color_mean`; the training
     pipeline computes them on every whole render and carries them with its crops."""
     _check(config)
     stats = {}
     if config.exposure == "frame":
-        stats["exposure_level"] = lambda frame: exposure_level(_getter(frame)("color"))
+        stats["color_mean"] = lambda frame: color_mean(_getter(frame)("color"))
     if config.position_norm != "frame":
         return stats
 
@@ -329,13 +367,15 @@ def frame_stats(config: Config) -> dict:
 
 def exposure_scale(buffers: Any, config: Config) -> jax.Array:
     """The factor `inputs` multiplies the colour by (1 with ``exposure = "none"``): `EXPOSURE_LEVEL`
-    over the frame's `exposure_level` (a crop's carried value, else the array's own), 1 for a black
-    frame; shaped ``(..., 1, 1, 1)`` to broadcast against the colour."""
+    over the frame's `exposure_level` (the luminance of a crop's carried `color_mean`, else the
+    array's own), 1 for a black frame; shaped ``(..., 1, 1, 1)`` to broadcast against the colour."""
     if config.exposure == "none":
         return jnp.ones((), jnp.float32)
-    level = carried_stat(buffers, "exposure_level")
-    if level is None:
+    carried = carried_stat(buffers, "color_mean")
+    if carried is None:
         level = exposure_level(_getter(buffers)("color"))
+    else:
+        level = _luminance(jnp.asarray(carried, jnp.float32))[..., None]
     level = jnp.asarray(level, jnp.float32)
     scale = jnp.where(level > 1e-12, EXPOSURE_LEVEL / jnp.maximum(level, 1e-12), 1.0)
     return jax.lax.stop_gradient(scale)[..., None, None]
@@ -391,11 +431,28 @@ def apply(params: dict, buffers: Buffers, config: Config) -> jax.Array:
 
 def loss(params: dict, batch: dict, config: Config):
     """Eq. 5: RelMSE in HDR, ``mean((y - r)^2 / (r^2 + eps))`` over pixels and channels, with the
-    fusion sub-network's BatchNorm in training mode (its new running statistics as aux updates)."""
+    fusion sub-network's BatchNorm in training mode (its new running statistics as aux updates).
+    With ``loss_scale = "output"`` the denominator is ``sg(y)^2 + eps`` (``sg``: no gradient): a
+    reference-weighted loss is minimised below the mean of the references an input admits (dark
+    ones weigh more), an output-weighted one at their mean (docs/methods/demc.md)."""
     out, updates = _run(params, batch, config, train=True)
-    ref = batch["reference"]
-    value = jnp.mean(jnp.square(out - ref) / (jnp.square(ref) + config.eps))
-    return value, {"updates": updates}
+    return relative_loss(out, batch["reference"], config), {"updates": updates}
+
+
+def relative_loss(out: jax.Array, ref: jax.Array, config: Config) -> jax.Array:
+    """The loss of `loss` on HDR output and reference ``(..., H, W, 3)``: ``mean((y - r)^2 / (s^2 +
+    eps))`` with ``s`` the reference (Eq. 5) or, for ``loss_scale = "output"``, the output without
+    its gradient; plus ``level_weight`` times the same term on ``level_pool``-pixel block means
+    (`Config.level_weight`)."""
+    def rel(y, r):
+        scale = r if config.loss_scale == "reference" else jax.lax.stop_gradient(y)
+        return jnp.mean(jnp.square(y - r) / (jnp.square(scale) + config.eps))
+
+    value = rel(out, ref)
+    if config.level_weight:
+        pool = nn.AvgPool(int(config.level_pool))[1]
+        value = value + config.level_weight * rel(pool({}, out), pool({}, ref))
+    return value
 
 
 # -- training data ---------------------------------------------------------------------------------
