@@ -57,7 +57,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from .integrator import FEATURE_DIMS, FEATURES, PathSettings, mis_weight, RoughnessLookup
+from .integrator import FEATURE_DIMS, FEATURES, PathSettings, feature_vertex, mis_weight, RoughnessLookup
 from jaxdenoise.errors import JaxdenoiseError
 
 __all__ = ["ShiftSettings", "NEIGHBOURS", "trace_gpt"]
@@ -212,21 +212,6 @@ def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, setti
     state = dict(ray=mi.Ray3f(ray), si=si, depth=UInt32(0), L=L, beta=Spectrum(1.0), eta=Float(1.0),
                  active=valid0 & (settings.max_depth > 1), offs=offs, feats=feats, found=Bool(False),
                  pending=valid0 & (settings.max_depth <= 1))
-
-    def features_at(f, si, bsdf, at_feat, reaches):
-        # The feature vertex's features (trace's "Features" block; albedo2 is recorded a vertex later).
-        f = dict(f)
-        if "albedo" in f:
-            f["albedo"] = dr.select(at_feat, bsdf.eval_diffuse_reflectance(si, at_feat), f["albedo"])
-        if "normal" in f:
-            f["normal"] = dr.select(at_feat, mi.Color3f(si.sh_frame.n), f["normal"])
-        if "position" in f:
-            f["position"] = dr.select(at_feat, mi.Color3f(si.p), f["position"])
-        if "roughness" in f:
-            f["roughness"] = dr.select(at_feat, roughness(bsdf, at_feat), f["roughness"])
-        if "visibility" in f:
-            f["visibility"] = dr.select(at_feat & reaches, 1.0, f["visibility"])
-        return f
 
     def body(s, smp):
         ray, si, depth, active = s["ray"], s["si"], s["depth"], s["active"]
@@ -433,7 +418,7 @@ def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, setti
                        | dr.select(hv_ok, UInt32(HALF_VECTOR << (3 * k)), 0)
                        | dr.select(cont & fail, UInt32(FAILED << (3 * k)), 0))
 
-        f = features_at(s["feats"], si, bsdf, at_feat, reaches)
+        f = feature_vertex(s["feats"], si, bsdf, at_feat, reaches, roughness)
         if "albedo2" in f:  # the vertex after the feature vertex, where the path reaches one
             at2 = at_feat & cont & valid_n
             f["albedo2"] = dr.select(at2, si_n.bsdf(new_ray).eval_diffuse_reflectance(si_n, at2), f["albedo2"])
@@ -452,5 +437,5 @@ def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, setti
         si, pending = state["si"], state["pending"]
         bsdf = si.bsdf(state["ray"])
         at_feat = pending & ~state["found"] & has(bsdf.flags(), mi.BSDFFlags.Smooth)
-        out.update(features_at(state["feats"], si, bsdf, at_feat, Bool(False)))
+        out.update(feature_vertex(state["feats"], si, bsdf, at_feat, Bool(False), roughness))
     return out

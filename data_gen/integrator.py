@@ -241,19 +241,10 @@ def trace(scene, sampler, ray, active, *, settings: PathSettings, record: frozen
             f["depth"] = dr.select(active & (depth == 0) & valid, si.t, f["depth"])
         at_feat = active & _not(found) & valid & smooth
         at_second = active & found & _not(found2)
-        if want["albedo"]:
-            f["albedo"] = dr.select(at_feat, bsdf.eval_diffuse_reflectance(si, at_feat), f["albedo"])
+        f = feature_vertex(f, si, bsdf, at_feat, reaches, roughness)
         if want["albedo2"]:
             at2 = at_second & valid
             f["albedo2"] = dr.select(at2, bsdf.eval_diffuse_reflectance(si, at2), f["albedo2"])
-        if want["normal"]:
-            f["normal"] = dr.select(at_feat, mi.Color3f(si.sh_frame.n), f["normal"])
-        if want["position"]:
-            f["position"] = dr.select(at_feat, mi.Color3f(si.p), f["position"])
-        if want["roughness"]:
-            f["roughness"] = dr.select(at_feat, roughness(bsdf, at_feat), f["roughness"])
-        if want["visibility"]:
-            f["visibility"] = dr.select(at_feat & reaches, 1.0, f["visibility"])
         found2 = found2 | at_second
         found = found | at_feat
 
@@ -288,6 +279,28 @@ def trace(scene, sampler, ray, active, *, settings: PathSettings, record: frozen
     out.update(state["feats"])
     out["vertices"] = Float(state["depth"])   # path vertices traced: a sample's cost (adaptive sampling)
     return out
+
+
+def feature_vertex(feats: dict, si, bsdf, at_feat, reaches, roughness) -> dict:
+    """``feats`` with the feature vertex's values where ``at_feat``: ``albedo``, ``normal``,
+    ``position``, ``roughness`` and ``visibility`` (where ``reaches``: the vertex's light sample got
+    through), each only if ``feats`` holds it (module docstring; ``albedo2`` is a vertex later). The
+    one definition `trace` and the gradient tracer (`data_gen.gpt`) record."""
+    import drjit as dr
+    import mitsuba as mi
+
+    f = dict(feats)
+    if "albedo" in f:
+        f["albedo"] = dr.select(at_feat, bsdf.eval_diffuse_reflectance(si, at_feat), f["albedo"])
+    if "normal" in f:
+        f["normal"] = dr.select(at_feat, mi.Color3f(si.sh_frame.n), f["normal"])
+    if "position" in f:
+        f["position"] = dr.select(at_feat, mi.Color3f(si.p), f["position"])
+    if "roughness" in f:
+        f["roughness"] = dr.select(at_feat, roughness(bsdf, at_feat), f["roughness"])
+    if "visibility" in f:
+        f["visibility"] = dr.select(at_feat & reaches, 1.0, f["visibility"])
+    return f
 
 
 def _not(mask):

@@ -35,7 +35,7 @@ def main() -> None:
     ap.add_argument("--out", default="docs/results/demc_ablation.json")
     args = ap.parse_args()
     spps = [int(s) for s in args.spp.split(",")]
-    folders = sorted(p.parent for p in Path(args.weights).rglob("params.npz") if p.parent.name != "weights")
+    folders = sorted(p.parent for p in Path(args.weights).rglob("params.npz") if p.parent.name not in ("weights", "checkpoint"))
     # the project's loader of scored frames: the first render of each shot at each rate
     frames = [(Path(f["file"]).parent.name, f["spp"], f["buffers"], f["reference"])
               for f in load_validation(get("demc"), args.data, spps)]
