@@ -144,6 +144,27 @@ def test_first_order_weights_against_numpy():
     np.testing.assert_allclose(w[1], right, rtol=1e-6)  # the left pairs, seen from the other pixel
     np.testing.assert_allclose(w[2], down, rtol=1e-6)
     np.testing.assert_allclose(w[3], down, rtol=1e-6)
+    # the literal reading of Eq. 10: the same weights on I_b = T^-1(T(I_b)) (mu-law, mu = 16)
+    hdr = np.sign(tb) * np.expm1(np.abs(tb) * np.log1p(16.0)) / 16.0
+    wh = [np.asarray(v) for v in G.first_order_weights(jnp.asarray(tb), dataclasses.replace(CFG, weights_domain="hdr"))]
+    np.testing.assert_allclose(wh[0], np.exp(-np.sum((hdr[:, 1:] - hdr[:, :-1]) ** 2, -1, keepdims=True) * 9.0),
+                               rtol=1e-5)
+    with pytest.raises(ValueError, match="weights_domain"):
+        dataclasses.replace(CFG, weights_domain="log")
+
+
+def test_residual_block_reading_changes_the_function_not_the_parameters():
+    """``res_act_after_sum=False`` (Fig. 4's one LReLU per block) drops the LReLU after the skip sum:
+    the same parameters, a different output where the sum is negative."""
+    cfg = dataclasses.replace(CFG, widths=(4, 4, 4), res_blocks=1, g_width=4, input_skip=False)
+    plain = dataclasses.replace(cfg, res_act_after_sum=False)
+    p = G.init(jax.random.PRNGKey(0), cfg)
+    assert jax.tree_util.tree_structure(p) == jax.tree_util.tree_structure(G.init(jax.random.PRNGKey(0), plain))
+    x = jnp.asarray(np.random.default_rng(0).normal(size=(1, 4, 4, 8)), jnp.float32)
+    block = lambda c: G.layers(c)["res"][0][1](p["res"]["0"], x)  # noqa: E731
+    a, b = np.asarray(block(cfg)), np.asarray(block(plain))
+    np.testing.assert_allclose(a, np.where(b > 0, b, 0.01 * b), rtol=1e-5, atol=1e-6)
+    assert np.any(b < 0)
 
 
 def test_postprocess_keeps_an_output_that_already_agrees_with_the_base():

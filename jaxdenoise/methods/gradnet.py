@@ -96,6 +96,12 @@ class Config:
     lambda_growth: float = _training(1.1)  # Eq. 14
     lambda_max: float = _training(2.0)  # Eq. 14
     lambda_epochs: int = _training(5)  # Eq. 14: lambda = 0 up to this epoch
+    # The residual block (Sec. 4.4 / Fig. 4): True applies an LReLU after the skip sum as well as between
+    # the two convs (our first reading); False only between them (Fig. 4's caption: one LReLU per block).
+    res_act_after_sum: bool = True
+    # Eq. 10's w_ij: on the compressed base T(I_b) ("compressed", our first reading) or on I_b itself
+    # ("hdr": the equation writes no T there). Training-only (the loss).
+    weights_domain: str = _training("compressed")
     residual_output: bool = True  # output = T(I_b) + decoder (ours, docs/methods/gradnet.md)
     input_skip: bool = True  # the decoder's last level joins the full-resolution inputs (ours, docs/methods/gradnet.md)
     head_width: int = 0  # > 0: a full-resolution hidden layer beside the output conv (ours, docs/methods/gradnet.md)
@@ -113,6 +119,8 @@ class Config:
             raise JaxdenoiseError(f"gradnet: config.widths must be 3 positive ints (three stride-2 convs), got {self.widths}")
         if int(self.head_width) < 0 or (self.head_width and not self.input_skip):
             raise JaxdenoiseError(f"gradnet: config.head_width must be >= 0 and needs input_skip, got {self.head_width}")
+        if self.weights_domain not in ("compressed", "hdr"):
+            raise JaxdenoiseError(f"gradnet: config.weights_domain must be 'compressed' or 'hdr', got {self.weights_domain!r}")
         if self.compression not in ("mu-law", "log"):
             raise JaxdenoiseError(f"gradnet: config.compression must be 'mu-law' or 'log', got {self.compression!r}")
         for name in ("mu", "sigma_b2", "pp_sigma", "epoch_patches", "train_batch", "train_crop"):
@@ -260,7 +268,8 @@ def layers(config: Config) -> dict:
     layers = {
         "data": [down(c) for c in w],
         "grad": [down(c) for c in w],
-        "res": [nn.serial(res, _act(config)) for _ in range(config.res_blocks)],
+        "res": [nn.serial(res, _act(config)) if config.res_act_after_sum else nn.serial(res)
+                for _ in range(config.res_blocks)],
         "dec": [nn.serial(nn.ConvTranspose(w[1], 4, stride=2, w_init=he), _act(config)),
                 nn.serial(nn.ConvTranspose(w[0], 4, stride=2, w_init=he), _act(config)),
                 last],
@@ -415,7 +424,10 @@ def _shifted(a: jax.Array, axis: int, s: int) -> tuple[jax.Array, jax.Array]:
 
 def first_order_weights(tb: jax.Array, config: Config) -> list[jax.Array]:
     """``w_ij = exp(-|T(I_b,i) - T(I_b,j)|^2 / (2 sigma_b^2))`` (squared L2 over the colour channels)
-    for the 4 neighbour directions of `_neighbours` (each ``(..., H', W', 1)``)."""
+    for the 4 neighbour directions of `_neighbours` (each ``(..., H', W', 1)``), from the compressed
+    base ``tb``; with ``weights_domain = "hdr"`` the same on ``I_b = T^-1(tb)``."""
+    if config.weights_domain == "hdr":
+        tb = decompress(tb, config)
     out = []
     for axis, s in _neighbours():
         bj, bi = _shifted(tb, axis, s)
