@@ -119,16 +119,20 @@ def test_every_branch_receives_gradient():
 
 
 def test_loss_is_eq5_relmse_in_hdr():
-    """Without BatchNorm (DEMC-noSN) training and inference outputs agree, so the loss must equal
-    mean((y - r)^2 / (r^2 + 1e-3)) of `apply`'s HDR output, computed here in NumPy."""
-    cfg = dataclasses.replace(SMALL, variant="nosn")
+    """Without BatchNorm (DEMC-noSN) training and inference outputs agree, so with ``level_weight=0``
+    the loss must equal mean((y - r)^2 / (r^2 + 1e-3)) of `apply`'s HDR output, computed here in
+    NumPy; the default adds 4 times the same term on 8x8 block means."""
+    cfg = dataclasses.replace(SMALL, variant="nosn", level_weight=0.0)
     p = demc.init(jax.random.PRNGKey(3), cfg)
     b = _batch(2, 32)
-    value, _ = demc.loss(p, b, cfg)
     y = np.stack([np.asarray(demc.apply(p, Buffers(**{k: b[k][i] for k in b if k != "reference"}), cfg))
                   for i in range(2)]).astype(np.float64)
     r = b["reference"].astype(np.float64)
-    np.testing.assert_allclose(float(value), np.mean((y - r) ** 2 / (r ** 2 + 1e-3)), rtol=1e-4)
+    rel = lambda a, c: np.mean((a - c) ** 2 / (c ** 2 + 1e-3))  # noqa: E731
+    np.testing.assert_allclose(float(demc.loss(p, b, cfg)[0]), rel(y, r), rtol=1e-4)
+    pool = lambda a: a.reshape(2, 4, 8, 4, 8, 3).mean((2, 4))  # noqa: E731
+    default = dataclasses.replace(cfg, level_weight=demc.Config().level_weight)
+    np.testing.assert_allclose(float(demc.loss(p, b, default)[0]), rel(y, r) + 4.0 * rel(pool(y), pool(r)), rtol=1e-4)
 
 
 def test_inputs_eq4_and_feature_normalisation():
@@ -225,7 +229,7 @@ def test_loss_scale_and_level_term_move_the_optimum_toward_the_mean_reference():
     refs = jnp.asarray([0.2, 1.0])
 
     def grad(y, scale):
-        cfg = dataclasses.replace(SMALL, loss_scale=scale)
+        cfg = dataclasses.replace(SMALL, loss_scale=scale, level_weight=0.0)
         return float(jax.grad(lambda v: demc.relative_loss(jnp.full(2, v), refs, cfg))(y))
 
     assert abs(grad(0.6, "output")) < 1e-6
@@ -239,7 +243,7 @@ def test_loss_scale_and_level_term_move_the_optimum_toward_the_mean_reference():
     def best(cfg):
         return vs[int(np.argmin([float(demc.relative_loss(jnp.full_like(refs8, v), refs8, cfg)) for v in vs]))]
 
-    plain, level = best(SMALL), best(dataclasses.replace(SMALL, level_weight=8.0))
+    plain, level = best(dataclasses.replace(SMALL, level_weight=0.0)), best(dataclasses.replace(SMALL, level_weight=8.0))
     assert plain == pytest.approx(0.2315, abs=2e-3) and level == pytest.approx(0.4658, abs=2e-3)
     with pytest.raises(ValueError, match="level_weight"):
         demc.num_params(demc.Config(level_weight=-1.0))

@@ -35,7 +35,8 @@ _REGISTRY: dict[str, tuple[str, dict[str, Any]]] = {
     "poisson-l2": ("jaxdenoise.methods.poisson", {"norm": "l2"}),
     "poisson-l1": ("jaxdenoise.methods.poisson", {"norm": "l1"}),
     "demc": ("jaxdenoise.methods.demc", {}),
-    "demc-paper": ("jaxdenoise.methods.demc", {"recipe": "paper", "train_spps": (4,), "exposure": "none"}),
+    "demc-paper": ("jaxdenoise.methods.demc", {"recipe": "paper", "train_spps": (4,), "exposure": "none",
+                                               "level_weight": 0.0}),
     "rae": ("jaxdenoise.methods.rae", {}),
     "gradnet": ("jaxdenoise.methods.gradnet", {}),
 }
