@@ -335,6 +335,7 @@ def test_an_overshooting_output_decodes_finite_with_a_finite_gradient():
         assert bool(jnp.all(jnp.isfinite(g)))
 
 
+@pytest.mark.slow  # two short training runs with validation (about 30 s); CI runs the slow set too
 def test_unsupervised_selection_reads_no_reference(tmp_path, monkeypatch):
     """``select="loss"`` picks ``best/`` by the unsupervised validation loss (Eq. 7 at the schedule's
     end on whole validation frames): with every validation reference poisoned with NaN the same step
