@@ -59,10 +59,10 @@ __all__ = ["Config", "needs", "init", "init_from_data", "apply", "forward", "los
            "inputs", "frame_stats", "position_moments", "color_mean", "exposure_level", "exposure_scale", "num_params", "widths_of",
            "FEATURES", "TRAIN", "FROZEN", "WEIGHTS"]
 # Pixels of context a tile needs on each side (`jaxdenoise.tiling`), measured on a real frame
-# (docs/results/tiling/): with the 0.8.0 weights max |tiled - whole| / (|whole| + 0.01) of 1.9e-3 and
-# RelMSE -0.01 % at 128 px, 1.0e-2 and -0.29 % at 96 (2.7e-2 on tests/test_tiling.py's synthetic
-# frame, against 2.0e-3 at 128), 8.4e-2 and -2.28 % at 64; the paper-recipe weights needed 96. The 0.8.1
-# (stage-2) weights pass tests/test_tiling.py's 2e-2 at 128; the study was not re-run for them.
+# (docs/results/tiling/): with the 0.8.1 weights max |tiled - whole| / (|whole| + 0.01) of 1.3e-3 and
+# RelMSE -0.00 % at 128 px, 1.4e-2 and -0.10 % at 96, 7.8e-2 and -0.82 % at 64 (the 0.8.0 weights:
+# 1.9e-3 at 128, 1.0e-2 at 96; 2.7e-2 at 96 on tests/test_tiling.py's synthetic frame); the
+# paper-recipe weights needed 96.
 TILE_MARGIN = 128
 
 # `exposure = "frame"`: the level a frame's colour is scaled to before Eq. 4 (ours, docs/methods/demc.md)
