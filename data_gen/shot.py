@@ -25,10 +25,12 @@ from jaxdenoise.buffers import EMISSION_FIELD, GRADIENT_FIELDS, SAMPLE_COUNT_FIE
 from jaxdenoise.errors import JaxdenoiseError
 
 # What a gradient frame's ``seconds`` covers (written into its manifest entry).
-GRADIENT_TIME_NOTE = ("seconds = the gradient render (gradient_seconds), Dr.Jit compilation excluded "
-                      "(compile_seconds): one pass traces the base paths (the colour and the features, "
-                      "bit-identical to a plain buffer render) beside the shifted paths (two replayed traces, "
-                      "or four offset paths of the reconnection shift)")
+GRADIENT_TIME_NOTE = ("seconds = buffer render + gradient render (gradient_seconds), Dr.Jit compilation excluded "
+                      "(compile_seconds); the gradient render traces the base paths again (bit-identical to the "
+                      "colour) beside the shifted paths (two replayed traces, or four offset paths of the "
+                      "reconnection shift), so part of gradient_seconds repeats work the one-pass render "
+                      "(render_gradients(record=...)) shares; shots keep two passes so that a method that "
+                      "reads no gradient is charged the measured buffer pass alone")
 SHOT_RECORD = "shot.json"
 INTEGRATOR_NAME = "data_gen.buffers"
 
@@ -396,24 +398,26 @@ def _check_shift(shift: str | None, primal: str, gradient_emission: str = "separ
 def _noisy_frame(loaded, spp, fseed, settings, fields, samples_per_pass, shift, primal, gradient_emission, tick):
     """(buffers dict, seconds, compile seconds, gradient seconds, shift statistics) of one noisy frame."""
     record_feats = [f for f in FEATURES if f in fields or f"{f}_var" in fields]
-    if any(f in fields for f in GRADIENT_FIELDS):
-        # One pass: the gradient render records the colour and the features along its base paths.
-        with RenderTimer() as timer:
-            data, stats = _gradients(loaded, spp, fseed, settings, samples_per_pass, shift, primal,
-                                     gradient_emission, record_feats, tick)
-        return data, timer.seconds, timer.compile_seconds, timer.seconds, stats
     with RenderTimer() as timer:
         data = render_buffers(loaded, spp=spp, seed=fseed, settings=settings, record=record_feats,
                               samples_per_pass=samples_per_pass, on_pass=tick)
-    return data, timer.seconds, timer.compile_seconds, 0.0, None
+    seconds, compile_seconds = timer.seconds, timer.compile_seconds
+    grad_seconds, stats = 0.0, None
+    if any(f in fields for f in GRADIENT_FIELDS):
+        with RenderTimer() as timer:
+            grads, stats = _gradients(loaded, spp, fseed, settings, samples_per_pass, shift, primal,
+                                      gradient_emission)
+            data.update(grads)
+        grad_seconds = timer.seconds
+        seconds += grad_seconds
+        compile_seconds += timer.compile_seconds
+    return data, seconds, compile_seconds, grad_seconds, stats
 
 
-def _gradients(scene, spp, seed, settings, samples_per_pass, shift, primal, gradient_emission,
-               record=(), on_pass=None) -> tuple[dict, dict | None]:
-    """A gradient frame's buffers from one gradient render: dx, dy (with ``gradient_emission=
-    "separate"`` the emission they leave out), the colour (the base paths' mean, bit-identical to
-    `render_buffers`' with the same seed, or with ``primal="gpt"`` the G-PT primal) and its variance,
-    the features in ``record`` (as `render_buffers` gives them); the shift statistics."""
+def _gradients(scene, spp, seed, settings, samples_per_pass, shift, primal,
+               gradient_emission) -> tuple[dict, dict | None]:
+    """dx, dy (with ``gradient_emission="separate"`` the emission they leave out, with
+    ``primal="gpt"`` the colour) of a gradient frame; the shift statistics."""
     try:
         from . import gradient
     except ImportError as exc:
@@ -422,14 +426,13 @@ def _gradients(scene, spp, seed, settings, samples_per_pass, shift, primal, grad
             f"({exc}); request methods/buffers without dx/dy") from None
     out = gradient.render_gradients(scene, spp=spp, seed=seed, max_depth=settings.max_depth,
                                      rr_depth=settings.rr_depth, samples_per_pass=samples_per_pass,
-                                     shift=shift, primal=primal, direct_emission=gradient_emission,
-                                     record=record, on_pass=on_pass)
+                                     shift=shift, primal=primal, direct_emission=gradient_emission)
     # dx_var / dy_var / emission_var have no channels in the EXR contract (jaxdenoise.buffers.CHANNELS).
     data = {k: np.asarray(out[k], np.float32) for k in ("dx", "dy", EMISSION_FIELD) if k in out}
-    data.update({k: np.asarray(out[k], np.float32) for f in record for k in (f, f"{f}_var") if k in out})
-    data["color"] = np.asarray(out["primal"], np.float32)
-    if "primal_var" in out:
-        data["color_var"] = np.asarray(out["primal_var"], np.float32)
+    if primal == "gpt":
+        data["color"] = np.asarray(out["primal"], np.float32)
+        if "primal_var" in out:
+            data["color_var"] = np.asarray(out["primal_var"], np.float32)
     stats = dict(out.get("shift_stats") or {}, n_invalid=int(out["n_invalid"]))
     return data, stats
 
