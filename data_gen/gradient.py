@@ -40,7 +40,7 @@ import numpy as np
 from .integrator import EMISSION, FEATURE_DIMS, FEATURES, PathSettings, derive_seed, trace
 from .mitsuba_setup import is_vectorized, setup_mitsuba
 from .gpt import NEIGHBOURS, ShiftSettings, trace_gpt
-from .render import DEFAULT_SAMPLES_PER_PASS, camera_ray, camera_samples, moments_to_buffers, segment_sums
+from .render import DEFAULT_SAMPLES_PER_PASS, camera_ray, camera_samples, block_sums, moments_to_buffers
 from .scenes import load_scene
 from jaxdenoise.buffers import GRADIENT_EMISSION_MODES
 from jaxdenoise.errors import JaxdenoiseError
@@ -180,9 +180,9 @@ def render_gradients(
             hold it like every other contribution (no ``emission``). `DIRECT_EMISSION`.
         record: features (`data_gen.integrator.FEATURES`) recorded along the base paths, returned as
             `data_gen.render.render_buffers` returns them (``<feature>`` means and, with spp > 1,
-            ``<feature>_var``) and equal to its output for the same seed: the gradient pass
-            replaces the plain buffer pass of a gradient frame (its base image is that pass's
-            colour).
+            ``<feature>_var``) and equal to its output for the same seed: a gradient frame in one
+            pass (data_gen's shots keep two, so that a method reading no gradient is charged the
+            buffer pass alone: docs/metrics.md).
 
     Returns:
         dict of float32 ``HWC`` arrays, 3 channels, linear radiance:
@@ -256,13 +256,12 @@ def render_gradients(
     def add(values: dict, n: int) -> None:
         # Per-pixel sums and sums of squares (float64 on the host) of per-lane values (Spectrum, or a
         # feature of FEATURE_DIMS channels): evaluated in one kernel, then summed per pixel in one more
-        # (`segment_sums`; lane i is sample i % n of pixel i // n).
+        # (`block_sums`).
         names = list(values)
         dims = [FEATURE_DIMS.get(k, 3) for k in names]
         comps = [values[k][c] if d == 3 else values[k] for k, d in zip(names, dims) for c in range(d)]
         dr.eval(*comps)
-        begin = np.arange(npix, dtype=np.int64) * n
-        sums = iter(segment_sums(comps, begin, begin + n))
+        sums = iter(block_sums(comps, npix, n))
         for k, d in zip(names, dims):
             s, q = acc.setdefault(k, [np.zeros((npix, d)), np.zeros((npix, d))])
             for c in range(d):

@@ -152,8 +152,7 @@ def render_moments(scene, *, spp: int, seed: int, settings: PathSettings, record
             if n > 1:
                 idx = idx // dr.opaque(mi.UInt32, n)
             comps = _traced_components(scene, sensor, sampler, idx, width, settings, record, rough, names)
-            begin = np.arange(npix, dtype=np.int64) * n
-            sums = segment_sums(comps, begin, begin + n)
+            sums = block_sums(comps, npix, n)
             i = 0
             for name in names:
                 c = _channels(name)
@@ -266,6 +265,12 @@ def _render_parts(scene, sensor, parts, seed, settings, record, rough, accs, nam
         if on_pass is not None:
             on_pass(n / npix)
         start = end
+
+
+def block_sums(comps, npix: int, n: int) -> list:
+    """`segment_sums` of a uniform wavefront: lane ``i`` is sample ``i % n`` of pixel ``i // n``."""
+    begin = np.arange(npix, dtype=np.int64) * n
+    return segment_sums(comps, begin, begin + n)
 
 
 def segment_sums(comps, begin: np.ndarray, end: np.ndarray) -> list:

@@ -38,9 +38,9 @@ vector}``, `jaxdenoise.methods.protocol`); `build_cache` evaluates each on every
 render (its cached float32 fields, ``spp`` and camera matrices; never the reference) and stores the
 values in the index; every crop, sequence crop and whole render drawn from the cache carries them as
 extra entries ``"stat.<name>"`` (`STAT`): ``(n, k)`` for crops, ``(n, T, k)`` for sequence crops,
-one value per frame of the sequence, each frame's own. The statistics are of quantities the
-augmentations only move (positions, depths) pass through `augment` unchanged (backward playback
-reverses them with the frames); a statistic named in `RADIANCE_STATS` is a per-channel radiance
+one value per frame of the sequence, each frame's own. Statistics of quantities the augmentations
+only move (positions, depths) pass through `augment` unchanged (backward playback reverses them
+with the frames); a statistic named in `RADIANCE_STATS` is a per-channel radiance
 ``(..., 3)`` (DEMC's clipped mean colour) and is multiplied by the colour modulation ``m`` with the
 colour, so a modulated crop carries the statistic of its modulated whole render (exactly where the
 statistic is linear in the colour). A method's input builder reads the carried value

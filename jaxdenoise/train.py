@@ -707,11 +707,15 @@ def validate(method: Any, params: Any, frames: list[dict]) -> dict:
 
 
 def unsupervised_loss(method: Any) -> Callable | None:
-    """The method's ``validation_loss`` (module docstring) jitted as ``f(params, buffers)``, or None."""
+    """The method's ``validation_loss`` (module docstring) jitted as ``f(params, buffers)``, or None;
+    one compiled function per (loss, config), so every validation round of a run reuses it."""
     vloss = getattr(method.module, "validation_loss", None)
-    if vloss is None:
-        return None
-    return jax.jit(functools.partial(vloss, config=method.config))
+    return None if vloss is None else _jitted_loss(vloss, method.config)
+
+
+@functools.lru_cache(maxsize=8)
+def _jitted_loss(vloss: Callable, config: Any) -> Callable:
+    return jax.jit(functools.partial(vloss, config=config))
 
 
 def summary_line(summary: dict) -> str:
