@@ -181,8 +181,7 @@ def render_gradients(
         record: features (`data_gen.integrator.FEATURES`) recorded along the base paths, returned as
             `data_gen.render.render_buffers` returns them (``<feature>`` means and, with spp > 1,
             ``<feature>_var``) and equal to its output for the same seed: a gradient frame in one
-            pass (data_gen's shots keep two, so that a method reading no gradient is charged the
-            buffer pass alone: docs/metrics.md).
+            pass (how data_gen's shots render gradient frames: docs/metrics.md).
 
     Returns:
         dict of float32 ``HWC`` arrays, 3 channels, linear radiance:

@@ -25,12 +25,10 @@ from jaxdenoise.buffers import EMISSION_FIELD, GRADIENT_FIELDS, SAMPLE_COUNT_FIE
 from jaxdenoise.errors import JaxdenoiseError
 
 # What a gradient frame's ``seconds`` covers (written into its manifest entry).
-GRADIENT_TIME_NOTE = ("seconds = buffer render + gradient render (gradient_seconds), Dr.Jit compilation excluded "
-                      "(compile_seconds); the gradient render traces the base paths again (bit-identical to the "
-                      "colour) beside the shifted paths (two replayed traces, or four offset paths of the "
-                      "reconnection shift), so part of gradient_seconds repeats work the one-pass render "
-                      "(render_gradients(record=...)) shares; shots keep two passes so that a method that "
-                      "reads no gradient is charged the measured buffer pass alone")
+GRADIENT_TIME_NOTE = ("seconds = the gradient frame rendered in one pass (colour, features, dx, dy together: "
+                      "render_gradients(record=...)), Dr.Jit compilation excluded (compile_seconds); "
+                      "buffer_seconds = a buffer-only render of the same frame (same seed: bit-identical colour and "
+                      "features, checked), timed beside it: what a method that reads no gradient is charged")
 SHOT_RECORD = "shot.json"
 INTEGRATOR_NAME = "data_gen.buffers"
 
@@ -270,24 +268,24 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
                 if spec is not None:
                     data, seconds, compile_seconds, adaptive_info = _adaptive_frame(
                         loaded, s, fseed, settings, fields, samples_per_pass, spec, passes, initial_spp, camera, tick)
-                    grad_seconds, stats = 0.0, None
+                    buffer_seconds, stats = None, None
                 else:
-                    data, seconds, compile_seconds, grad_seconds, stats = _noisy_frame(
+                    data, seconds, compile_seconds, buffer_seconds, stats = _noisy_frame(
                         loaded, s, fseed, settings, fields, samples_per_pass, shift, primal, gradient_emission, tick)
                 bufs = Buffers(**{f: data[f] for f in fields if f in data}, spp=s, **camera)
                 attrs = _attrs(base_key, s, inst, seconds)
                 if spec is not None:
                     attrs.update(adaptive=spec.label, adaptive_passes=int(passes),
                                  adaptive_pilot_spp=int(adaptive_info["pilot_spp"]))
-                if grad_seconds:
+                if buffer_seconds is not None:
                     attrs.update(gradient_shift=shift, primal=primal, gradient_emission=gradient_emission)
                 write_buffers(out_dir / name, bufs, attrs)
                 dsha = data_sha256({f: data[f] for f in fields if f in data})
                 key = dict(key)
                 files[name] = {"key": key, "seconds": seconds, "compile_seconds": compile_seconds,
-                               "gradient_seconds": grad_seconds, "spp": s, "instance": inst, "seed": fseed,
-                               "fields": fields}
-                if grad_seconds:
+                               "spp": s, "instance": inst, "seed": fseed, "fields": fields}
+                if buffer_seconds is not None:
+                    files[name]["buffer_seconds"] = buffer_seconds
                     files[name]["gradient_note"] = GRADIENT_TIME_NOTE
                     files[name]["shift_stats"] = stats
                 if spec is not None:
@@ -309,7 +307,9 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
     wanted = {j[0] for j in jobs} | {k for k in files if _mode(k) != _mode(noisy_name(1, 0, spec))
                                      and k != "reference.exr" and (out_dir / k).exists()}
     rec["files"] = {k: v for k, v in files.items() if k in wanted}
-    rec["render_seconds"] = float(sum(v.get("seconds", 0.0) for v in rec["files"].values()))
+    # every render this shot cost, a gradient frame's timed buffer pass too
+    rec["render_seconds"] = float(sum(v.get("seconds", 0.0) + (v.get("buffer_seconds") or 0.0)
+                                      for v in rec["files"].values()))
     write_json(out_dir / SHOT_RECORD, rec)
     return rec
 
@@ -339,7 +339,7 @@ def render_frame(scene: Any, *, spp: int = 4, methods: Iterable[str] | None = No
     if gradient_emission == "separate" and any(f in fields for f in GRADIENT_FIELDS):
         fields = fields + [EMISSION_FIELD]
     data = _noisy_frame(loaded, int(spp), derive_seed(seed, "noisy", int(spp), int(instance)), settings, fields,
-                        samples_per_pass, shift, primal, gradient_emission, None)[0]
+                        samples_per_pass, shift, primal, gradient_emission, None, buffer_pass=False)[0]
     return Buffers(**{f: data[f] for f in fields if f in data}, spp=int(spp), **camera)
 
 
@@ -395,29 +395,48 @@ def _check_shift(shift: str | None, primal: str, gradient_emission: str = "separ
     return shift
 
 
-def _noisy_frame(loaded, spp, fseed, settings, fields, samples_per_pass, shift, primal, gradient_emission, tick):
-    """(buffers dict, seconds, compile seconds, gradient seconds, shift statistics) of one noisy frame."""
+def _noisy_frame(loaded, spp, fseed, settings, fields, samples_per_pass, shift, primal, gradient_emission, tick,
+                 buffer_pass=True):
+    """(buffers dict, seconds, compile seconds, buffer seconds, shift statistics) of one noisy frame.
+
+    A frame without gradients is one buffer pass (buffer seconds None). A gradient frame is rendered
+    in one pass (`data_gen.gradient.render_gradients` with ``record``: colour, features, dx, dy
+    together) and its seconds are that pass's. The buffer pass of the same seed is rendered and
+    timed beside it, because `jaxdenoise.bench` charges a method that reads no gradient that pass
+    alone (docs/metrics.md); its colour (with ``primal="base"``) and features must equal the one
+    pass's bit for bit (a tracer bug otherwise: an error naming the buffer). ``buffer_pass=False``
+    (a frame whose time nobody reads) renders the one pass alone.
+    """
     record_feats = [f for f in FEATURES if f in fields or f"{f}_var" in fields]
+    gradient_frame = any(f in fields for f in GRADIENT_FIELDS)
+    if gradient_frame and not buffer_pass:
+        with RenderTimer() as timer:
+            frame, stats = _gradients(loaded, spp, fseed, settings, samples_per_pass, shift, primal,
+                                      gradient_emission, record_feats)
+        return frame, timer.seconds, timer.compile_seconds, None, stats
     with RenderTimer() as timer:
         data = render_buffers(loaded, spp=spp, seed=fseed, settings=settings, record=record_feats,
                               samples_per_pass=samples_per_pass, on_pass=tick)
-    seconds, compile_seconds = timer.seconds, timer.compile_seconds
-    grad_seconds, stats = 0.0, None
-    if any(f in fields for f in GRADIENT_FIELDS):
-        with RenderTimer() as timer:
-            grads, stats = _gradients(loaded, spp, fseed, settings, samples_per_pass, shift, primal,
-                                      gradient_emission)
-            data.update(grads)
-        grad_seconds = timer.seconds
-        seconds += grad_seconds
-        compile_seconds += timer.compile_seconds
-    return data, seconds, compile_seconds, grad_seconds, stats
+    if not gradient_frame:
+        return data, timer.seconds, timer.compile_seconds, None, None
+    buffer_seconds, compile_seconds = timer.seconds, timer.compile_seconds
+    with RenderTimer() as timer:
+        frame, stats = _gradients(loaded, spp, fseed, settings, samples_per_pass, shift, primal,
+                                  gradient_emission, record_feats)
+    for k, v in data.items():
+        if k in ("color", "color_var") and primal == "gpt":
+            continue  # the colour is the G-PT primal, not the base paths' mean
+        if isinstance(v, np.ndarray) and not np.array_equal(v, frame.get(k)):
+            raise RuntimeError(f"{k}: the one-pass gradient render differs from the buffer pass of the same seed "
+                               f"(seed {fseed}, {spp} spp); a tracer bug: report it with the scene")
+    return frame, timer.seconds, compile_seconds + timer.compile_seconds, buffer_seconds, stats
 
 
-def _gradients(scene, spp, seed, settings, samples_per_pass, shift, primal,
-               gradient_emission) -> tuple[dict, dict | None]:
-    """dx, dy (with ``gradient_emission="separate"`` the emission they leave out, with
-    ``primal="gpt"`` the colour) of a gradient frame; the shift statistics."""
+def _gradients(scene, spp, seed, settings, samples_per_pass, shift, primal, gradient_emission,
+               record=()) -> tuple[dict, dict | None]:
+    """The buffers of a gradient frame in one pass: colour (the base paths' mean, or with
+    ``primal="gpt"`` the G-PT primal), the ``record``ed features, dx, dy and (with
+    ``gradient_emission="separate"``) the emission they leave out; the shift statistics."""
     try:
         from . import gradient
     except ImportError as exc:
@@ -426,13 +445,14 @@ def _gradients(scene, spp, seed, settings, samples_per_pass, shift, primal,
             f"({exc}); request methods/buffers without dx/dy") from None
     out = gradient.render_gradients(scene, spp=spp, seed=seed, max_depth=settings.max_depth,
                                      rr_depth=settings.rr_depth, samples_per_pass=samples_per_pass,
-                                     shift=shift, primal=primal, direct_emission=gradient_emission)
+                                     shift=shift, primal=primal, direct_emission=gradient_emission,
+                                     record=record)
     # dx_var / dy_var / emission_var have no channels in the EXR contract (jaxdenoise.buffers.CHANNELS).
-    data = {k: np.asarray(out[k], np.float32) for k in ("dx", "dy", EMISSION_FIELD) if k in out}
-    if primal == "gpt":
-        data["color"] = np.asarray(out["primal"], np.float32)
-        if "primal_var" in out:
-            data["color_var"] = np.asarray(out["primal_var"], np.float32)
+    keys = ("dx", "dy", EMISSION_FIELD, *record, *(f"{f}_var" for f in record))
+    data = {k: np.asarray(out[k], np.float32) for k in keys if k in out}
+    data["color"] = np.asarray(out["primal"], np.float32)
+    if "primal_var" in out:
+        data["color_var"] = np.asarray(out["primal_var"], np.float32)
     stats = dict(out.get("shift_stats") or {}, n_invalid=int(out["n_invalid"]))
     return data, stats
 

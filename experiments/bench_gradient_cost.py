@@ -185,8 +185,8 @@ def page(res: dict) -> str:
         "`data_gen.integrator.FEATURES`, dx, dy) over that of the same frame's buffers without gradients "
         "(`render_buffers` with every feature), at equal spp. One pass: `render_gradients(record=FEATURES)`, "
         "whose base paths record the colour and the features (bit-identical to `render_buffers`'; the API "
-        "since 0.8.1); two passes: `render_buffers` then `render_gradients` (what data_gen's shots render, "
-        "so that the bench can charge a method that reads no gradient the buffer pass alone), "
+        "since 0.8.1, data_gen's shots since 0.8.2); two passes: `render_buffers` then `render_gradients` "
+        "(what data_gen's shots rendered before 0.8.2), "
         "measured in the same run. Time ratio = `render_gradients` (no features; replay: base + 2 replayed "
         "paths per sample; reconnect: base + 4 offset paths) / `render_buffers` (colour only) at equal spp.",
         "Variance ratio = sum(dx_var) / sum(var_a[x] + var_b[x+1]) (two independent plain renders; dx, dy "

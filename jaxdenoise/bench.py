@@ -11,11 +11,12 @@ one sequence driver (`jaxdenoise.sequence`): recurrent methods carry their state
 and the mean RelMSE / SSIM over its frames.
 
 Render time, per method (the equal-time axis): a method is charged the passes that made what it
-read (`charged_render_seconds`). data_gen renders a frame in one buffer pass (the colour and every
-auxiliary buffer come out of it together, so every method pays that pass whole) and, for gradient
-frames, a gradient pass (``dx``, ``dy``; with ``--primal gpt`` the colour too). A method that reads
-``dx``/``dy``, or the colour of a frame whose colour is the G-PT primal, is charged both passes;
-any other method the buffer pass alone. Each record also keeps the whole frame's time
+read (`charged_render_seconds`). data_gen renders a frame in one pass (the colour and every
+auxiliary buffer come out of it together, so every method pays that pass whole); a gradient frame's
+pass makes ``dx``, ``dy`` beside them (with ``--primal gpt`` the colour is G-PT's primal), and a
+buffer-only render of the same frame is timed beside it (``buffer_seconds``, `jaxdenoise.data`). A
+method that reads ``dx``/``dy``, or the colour of a frame whose colour is the G-PT primal, is
+charged the gradient frame's time; any other method the buffer-only render's. Each record also keeps the whole frame's time
 (``frame_render_seconds``) and the raw input's error on that frame (``input_relmse``), so every
 table row shows the error it started from and flags a method that made the image worse.
 
@@ -68,9 +69,9 @@ def charged_render_seconds(render: Render, read: Iterable[str]) -> float | None:
     if render.render_seconds is None:
         return None
     read = set(read)
-    if not render.gradient_seconds or read & GRADIENT_BUFFERS or (render.primal == "gpt" and "color" in read):
+    if render.buffer_seconds is None or read & GRADIENT_BUFFERS or (render.primal == "gpt" and "color" in read):
         return render.render_seconds
-    return max(0.0, render.render_seconds - render.gradient_seconds)
+    return render.buffer_seconds
 
 
 class _RssPeak:

@@ -5,9 +5,11 @@ is one **shot**, and every other EXR in it is a noisy **render** of that shot. A
 count is its integer ``spp`` header attribute, never a guess from its file name. Its render time
 is its ``render_seconds`` header attribute or, for data_gen output (whose EXRs keep no timings so
 they stay byte-identical across runs), the ``seconds`` of its entry in the shot's ``shot.json``
-(data_gen excludes Dr.Jit's one-off kernel compilation from it); without either it is unknown. Of
-that time, the gradient pass's share (``gradient_seconds``, same sources) and whether the colour
-came from it (the ``primal`` header attribute) let `bench` charge each method only the passes that
+(data_gen excludes Dr.Jit's one-off kernel compilation from it); without either it is unknown. A
+gradient frame also carries the time of a buffer-only render of it (``buffer_seconds``, same
+sources; data_gen renders gradient frames in one pass and times the buffer pass beside it; older
+two-pass folders give ``seconds - gradient_seconds``), which, with whether the colour came from
+the gradient render (the ``primal`` header attribute), lets `bench` charge each method only what
 made what it read.
 
 A **sequence** is a folder whose shots are named ``frame_0000/``, ``frame_0001/``, ... (in frame
@@ -37,8 +39,8 @@ _FRAME = re.compile(r"^frame_(\d+)$")
 class Render:
     path: Path
     spp: int | None
-    render_seconds: float | None  # the whole frame: every pass that made its buffers
-    gradient_seconds: float | None = None  # of which the gradient pass (dx, dy), when known
+    render_seconds: float | None  # the whole frame, as written (a gradient frame: colour, features, dx, dy)
+    buffer_seconds: float | None = None  # a gradient frame: a buffer-only render of it (no dx, dy), when known
     primal: str | None = None  # "gpt": the colour came from the gradient pass (data_gen --primal gpt)
     sampling: str | None = None  # adaptive frames: the map's spec (header 'adaptive'); None: uniform
 
@@ -78,7 +80,7 @@ class Sequence:
 
 
 def _timings(manifest: Path) -> dict[str, dict]:
-    """Each file's entry of a shot record (``seconds``, ``gradient_seconds``, ...)."""
+    """Each file's entry of a shot record (``seconds``, ``buffer_seconds``, ...)."""
     if not manifest.is_file():
         return {}
     try:
@@ -86,6 +88,18 @@ def _timings(manifest: Path) -> dict[str, dict]:
         return {k: v for k, v in files.items() if isinstance(v, dict)}
     except (json.JSONDecodeError, AttributeError) as e:
         raise JaxdenoiseError(f"{manifest}: not a valid shot record ({e})") from None
+
+
+def _buffer_seconds(header: dict, entry: dict, frame_seconds) -> float | None:
+    """A gradient frame's buffer-only render time (module docstring): ``buffer_seconds``, or from an
+    older two-pass record the frame's time less its gradient pass (``gradient_seconds``)."""
+    bs = header.get("buffer_seconds", entry.get("buffer_seconds"))
+    if bs is not None:
+        return float(bs)
+    gs = header.get("gradient_seconds", entry.get("gradient_seconds"))
+    if gs and frame_seconds is not None:
+        return max(0.0, float(frame_seconds) - float(gs))
+    return None
 
 
 def discover(data_dir: str | os.PathLike) -> list[Shot]:
@@ -106,9 +120,8 @@ def discover(data_dir: str | os.PathLike) -> list[Shot]:
             h = read_header(p)
             entry = timings.get(p.name, {})
             rs = h.get("render_seconds", entry.get("seconds"))
-            gs = h.get("gradient_seconds", entry.get("gradient_seconds"))
             renders.append(Render(p, h.get("spp"), float(rs) if rs is not None else None,
-                                  float(gs) if gs is not None else None, h.get("primal"), h.get("adaptive")))
+                                  _buffer_seconds(h, entry, rs), h.get("primal"), h.get("adaptive")))
         shots.append(Shot(ref.parent, ref, tuple(renders)))
     if not shots:
         raise FileNotFoundError(f"{root}: no shot found (a shot is a folder holding {REFERENCE} and noisy EXRs)")

@@ -26,7 +26,7 @@ def _files(folder: Path) -> dict[str, bytes]:
 
 def _scenes(m: dict) -> dict:
     """The manifest's scenes without what legitimately differs between runs (timings)."""
-    drop = ("seconds", "compile_seconds", "gradient_seconds", "render_seconds")
+    drop = ("seconds", "compile_seconds", "buffer_seconds", "render_seconds")
 
     def clean(x):
         if isinstance(x, dict):

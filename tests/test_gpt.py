@@ -244,6 +244,45 @@ def test_shot_records_the_shift(tmp_path):
     assert json.loads((tmp_path / "shot.json").read_text())["files"]["spp0002_00.exr"]["key"]["shift"] == "replay"
 
 
+def test_a_gradient_shot_is_one_pass_and_times_the_buffer_pass_beside_it(tmp_path, monkeypatch):
+    """A gradient frame of a shot is rendered in one pass (colour, features, dx, dy); its buffers
+    equal a plain shot's of the same seed bit for bit, the buffer-only render is timed beside it
+    (``buffer_seconds``, what bench charges a method that reads no gradient), and a buffer pass that
+    disagreed with the one pass would stop the shot with an error naming the buffer."""
+    from data_gen import shot
+    from jaxdenoise.data import discover
+    from jaxdenoise.io import read_buffers
+
+    scene = sphere_scene(res=8)
+    rec = shot.render_shot(scene, tmp_path / "g", spp=[2], ref_spp=4, methods=["poisson-l2", "lbf"],
+                           progress=False)
+    entry = rec["files"]["spp0002_00.exr"]
+    assert entry["seconds"] > 0 and entry["buffer_seconds"] > 0 and "one pass" in entry["gradient_note"]
+    assert "gradient_seconds" not in entry
+    assert rec["render_seconds"] == pytest.approx(sum(v["seconds"] + v.get("buffer_seconds", 0.0)
+                                                      for v in rec["files"].values()))
+    (render,) = discover(tmp_path / "g")[0].renders
+    assert render.render_seconds == pytest.approx(entry["seconds"])
+    assert render.buffer_seconds == pytest.approx(entry["buffer_seconds"])
+    shot.render_shot(scene, tmp_path / "p", spp=[2], ref_spp=0, methods=["lbf"], progress=False)
+    g, _ = read_buffers(tmp_path / "g" / "spp0002_00.exr")
+    p, _ = read_buffers(tmp_path / "p" / "spp0002_00.exr")
+    assert g.dx is not None and p.dx is None
+    for f in ("color", "color_var", "albedo", "normal", "depth", "albedo_var"):
+        np.testing.assert_array_equal(getattr(g, f), getattr(p, f), err_msg=f)
+
+    real = shot.render_buffers
+
+    def off_by_one_ulp(*a, **kw):
+        out = real(*a, **kw)
+        out["albedo"] = np.nextafter(out["albedo"], np.float32(np.inf))
+        return out
+
+    monkeypatch.setattr(shot, "render_buffers", off_by_one_ulp)
+    with pytest.raises(RuntimeError, match="albedo: the one-pass gradient render differs"):
+        shot.render_shot(scene, tmp_path / "bad", spp=[2], ref_spp=0, methods=["poisson-l2", "lbf"], progress=False)
+
+
 @pytest.mark.parametrize("shift", ["reconnect", "replay"])
 def test_the_gradient_pass_records_the_buffer_pass_features(shift):
     """A gradient frame needs no plain buffer pass: the base paths of the gradient render record the
