@@ -5,6 +5,9 @@ L_all against L_data + L_grad (Fig. 12), and the mu-law (mu = 16) against log(1 
 it as finished). ``--study decoder``: the decoder as first built (three deconvolutions,
 the last one giving the output) against the input-skip decoder the shipped network uses, each at the
 paper's learning rate (1e-4) and at ours (1e-3, gradient norm clipped to 1) (docs/methods/gradnet.md).
+``--study readings`` (issue 35 item 2): the residual block with an LReLU after the sum (ours) against
+Fig. 4's one LReLU per block, and Eq. 10's w_ij on the compressed base against w_ij on I_b in HDR
+(the equation writes no T there); ``--seeds`` repeats every variant.
 Every variant trains with the same code, data, seed and steps (`jaxdenoise.train.train`), validated
 on the same frames every ``--validate-every`` steps; the schedule is compressed to the budget (an
 epoch of ``--epoch-patches`` patches, so that Eq. 14's lambda is on for most of the run). Writes the
@@ -16,6 +19,8 @@ curves and the final scores as JSON and a plot.
         --epoch-patches 2560 --steps 32000 --validate-every 1000 --val-spps 64 --out docs/results/gradnet_ablation_converged
     python experiments/gradnet_ablation.py --study decoder --data data/gradnet_train --val data/gradnet_val \
         --steps 1000 --validate-every 200 --out docs/results/gradnet_decoder
+    python experiments/gradnet_ablation.py --study readings --data data/gradnet_train_gpt --val data/gradnet_val_gpt \
+        --steps 3000 --epoch-patches 256 --validate-every 500 --seeds 0,1 --out docs/results/gradnet_readings
 """
 from __future__ import annotations
 
@@ -43,6 +48,11 @@ STUDIES = {
         "L_data + L_grad (mu-law)": ({"first_order": False}, {}),
         "L_all (log)": ({"compression": "log"}, {}),
     },
+    "readings": {  # issue 35 item 2: two open readings of the paper, each against the shipped reading
+        "block LReLU after the sum, w_ij on T(I_b)": ({}, {}),
+        "one LReLU per block (Fig. 4), w_ij on T(I_b)": ({"res_act_after_sum": False}, {}),
+        "block LReLU after the sum, w_ij on I_b (Eq. 10 literal)": ({"weights_domain": "hdr"}, {}),
+    },
     "decoder": {
         # L_data + L_grad only: the question is how fast each decoder leaves the base image
         "first decoder, lr 1e-4": ({"input_skip": False, "first_order": False}, PAPER_LR),
@@ -63,25 +73,30 @@ def main(argv=None) -> int:
     ap.add_argument("--epoch-patches", type=int, default=128)
     ap.add_argument("--validate-every", type=int, default=250)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seeds", help="comma-separated seeds, every variant trained once per seed (default: --seed)")
     ap.add_argument("--runs", default="runs/gradnet_ablation")
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
     base = dataclasses.replace(gradnet.Config(), epoch_patches=args.epoch_patches)
     dataset = load_data(get("gradnet", base), args.data)
+    seeds = [int(v) for v in args.seeds.split(",")] if args.seeds else [args.seed]
     results = {}
-    for name, (over, train_over) in STUDIES[args.study].items():
-        cfg = dataclasses.replace(base, **over)
-        slug = "".join(c if c.isalnum() or c in "-." else "_" for c in name.replace("+", "plus"))
-        folder = Path(args.runs) / args.study / slug
-        t0 = time.perf_counter()
-        method = get("gradnet", cfg)
-        s = train(method, dataset, folder, TrainConfig.for_method(
-            method, steps=args.steps, seed=args.seed, val_data=args.val,
-            val_spps=[int(v) for v in args.val_spps.split(",")], validate_every=args.validate_every, resume=True,
-            progress=False, **train_over))
-        results[name] = {"config": over, "train": train_over, "validation": s["validation"], "best": s["best"],
-                         "seconds": time.perf_counter() - t0, "folder": str(folder)}
-        print(name, s["line"], flush=True)
+    for seed in seeds:
+        for variant, (over, train_over) in STUDIES[args.study].items():
+            name = variant if len(seeds) == 1 else f"{variant}, seed {seed}"
+            cfg = dataclasses.replace(base, **over)
+            slug = "".join(c if c.isalnum() or c in "-." else "_" for c in name.replace("+", "plus"))
+            folder = Path(args.runs) / args.study / slug
+            t0 = time.perf_counter()
+            method = get("gradnet", cfg)
+            s = train(method, dataset, folder, TrainConfig.for_method(
+                method, steps=args.steps, seed=seed, val_data=args.val,
+                val_spps=[int(v) for v in args.val_spps.split(",")], validate_every=args.validate_every, resume=True,
+                progress=False, **train_over))
+            results[name] = {"variant": variant, "seed": seed, "config": over, "train": train_over,
+                             "validation": s["validation"], "best": s["best"],
+                             "seconds": time.perf_counter() - t0, "folder": str(folder)}
+            print(name, s["line"], flush=True)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "ablation.json", {"command": "python experiments/gradnet_ablation.py " + " ".join(argv or sys.argv[1:]),

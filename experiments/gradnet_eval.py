@@ -1,7 +1,8 @@
 """GradNet against the classical screened-Poisson solvers on frames it never trained on (issue 15,
 item 6): mean RelMSE and SSIM per sampling rate of the input (base image), ``poisson-l2``,
 ``poisson-l1``, ``gradnet`` and ``gradnet`` without the post-process of Eq. 13, with GradNet's
-ratio to each solver.
+ratio to each solver. Every output is scored as the user gets it (`inference.nonnegative`: negative
+samples set to 0, as `jaxdenoise bench` does; each row counts the pixels changed).
 
     python experiments/gradnet_eval.py --data data/gradnet_test --out docs/results/gradnet_eval.json
 
@@ -22,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from jaxdenoise import metrics  # noqa: E402
 from jaxdenoise.api import resolve  # noqa: E402
-from jaxdenoise.inference import inference_fn, prepare  # noqa: E402
+from jaxdenoise.inference import inference_fn, nonnegative, prepare  # noqa: E402
 from jaxdenoise.fsutil import write_json  # noqa: E402
 from jaxdenoise.methods import Method  # noqa: E402
 
@@ -57,8 +58,9 @@ def main(argv=None) -> int:
             b, _ = read_buffers(renders[0].path)
             row = {"shot": shot.name, "spp": spp}
             for k, (m, p, fn) in fns.items():
-                out = np.asarray(fn(p, prepare(m, b)), np.float32)
-                row[k] = {"relmse": float(metrics.relmse(out, ref)), "ssim": float(metrics.ssim(out, ref))}
+                out, clamped = nonnegative(fn(p, prepare(m, b)))
+                row[k] = {"relmse": float(metrics.relmse(out, ref)), "ssim": float(metrics.ssim(out, ref)),
+                          "negative_clamped": clamped}
             rows.append(row)
             print(row["shot"], spp, {k: round(v["relmse"], 5) for k, v in row.items() if isinstance(v, dict)},
                   flush=True)

@@ -424,6 +424,25 @@ def _gradnet_ratios(results: Path) -> str:
                   "frames where GradNet beats L1, L2"], rows)
 
 
+@renderer("gradnet-primal")
+def _gradnet_primal(results: Path) -> str:
+    """The same validation frames with I_b the base paths' mean and the G-PT primal (issue 35 item 1):
+    mean RelMSE per method and the frames where GradNet beats L1, L2 (`gradnet_eval.py` reports)."""
+    methods = ["input", "poisson-l2", "poisson-l1", "gradnet"]
+    rows = []
+    runs = [("base paths' mean", load(results, "gradnet_primal/val_base.json")),
+            ("G-PT primal", load(results, "gradnet_primal/val_gpt.json"))]
+    for spp in sorted(runs[0][1]["summary"], key=int):
+        for label, d in runs:
+            if spp not in d["summary"]:
+                raise PageError(f"gradnet_primal: {label} has no {spp}-spp summary")
+            s = d["summary"][spp]
+            vals = [s[m]["relmse"] for m in methods]
+            rows.append([spp, label] + bold_min([num(v) for v in vals], vals)
+                        + [f"{s['gradnet_wins_per_frame_l1']}, {s['gradnet_wins_per_frame_l2']} of {s['frames']}"])
+    return table(["spp", "I_b", *methods, "frames where GradNet beats L1, L2"], rows, "llrrrrr")
+
+
 @renderer("gradnet-equal-time")
 def _gradnet_equal_time(results: Path) -> str:
     """Every method on G-PT and plain renders, ordered by total time (render + denoise, medians)."""
