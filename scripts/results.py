@@ -529,6 +529,33 @@ def _gradnet_ablation_seeds(results: Path) -> str:
                  rows, "lrrrl") + f"\n\nSeeds' columns: validation RelMSE at step {steps[-1]:,}."
 
 
+@renderer("gradnet-readings")
+def _gradnet_readings(results: Path) -> str:
+    """Issue 35 item 2: each reading's last validation per seed, and the seed mean per rate."""
+    d = load(results, "gradnet_readings/ablation.json")["results"]
+    variants: dict[str, list[dict]] = {}
+    for r in d.values():
+        variants.setdefault(r["variant"], []).append(r)
+    seeds = sorted({r["seed"] for r in d.values()})
+    rows, means = [], []
+    for name, runs in variants.items():
+        if sorted(r["seed"] for r in runs) != seeds:
+            raise PageError(f"gradnet_readings: {name!r} lacks a seed of {seeds}")
+        last = [sorted(r["validation"], key=lambda v: v["step"])[-1] for r in sorted(runs, key=lambda r: r["seed"])]
+        if len({v["step"] for v in last}) != 1:
+            raise PageError(f"gradnet_readings: {name!r} ends at different steps across seeds")
+        spps = sorted(last[0]["per_spp"], key=int)
+        mean = sum(v["relmse"] for v in last) / len(last)
+        means.append(mean)
+        rows.append([name] + [num(v["relmse"]) for v in last] + [num(mean)]
+                    + [num(sum(v["per_spp"][k] for v in last) / len(last)) for k in spps])
+    for row, m in zip(rows, means):
+        if m == min(means):
+            row[len(seeds) + 1] = f"**{row[len(seeds) + 1]}**"
+    return table(["reading"] + [f"seed {s}" for s in seeds] + ["seed mean"] + [f"mean, {k} spp" for k in spps], rows) + \
+        f"\n\nValidation RelMSE (mean over the frames at every rate) at step {last[0]['step']:,}, the run's last."
+
+
 @renderer("gradnet-converged")
 def _gradnet_converged(results: Path) -> str:
     d = load(results, "gradnet_ablation_converged/ablation.json")["results"]
