@@ -443,6 +443,24 @@ def _gradnet_primal(results: Path) -> str:
     return table(["spp", "I_b", *methods, "frames where GradNet beats L1, L2"], rows, "llrrrrr")
 
 
+@renderer("gradnet-test256")
+def _gradnet_test256(results: Path) -> str:
+    """The 256x256 G-PT test frames (issue 35 items 1 and 6): each GradNet weights' report of
+    `gradnet_eval.py` beside the solvers it scored, mean RelMSE and per-frame wins."""
+    runs = [("shipped (base-path data)", load(results, "gradnet_primal/test256_gpt_shipped.json")),
+            ("G-PT run (unsupervised selection)", load(results, "gradnet_primal/test256_gpt_run.json"))]
+    rows = []
+    for spp in sorted(runs[0][1]["summary"], key=int):
+        for label, d in runs:
+            s = d["summary"][spp]
+            vals = [s[m]["relmse"] for m in ("input", "poisson-l2", "poisson-l1", "gradnet")]
+            rows.append([spp, label] + bold_min([num(v) for v in vals], vals)
+                        + [f"{num(s['l1_over_gradnet'], '.2f')}x", f"{num(s['l2_over_gradnet'], '.2f')}x",
+                           f"{s['gradnet_wins_per_frame_l1']}, {s['gradnet_wins_per_frame_l2']} of {s['frames']}"])
+    return table(["spp", "gradnet weights", "input", "poisson-l2", "poisson-l1", "gradnet", "L1 / GradNet",
+                  "L2 / GradNet", "frames where GradNet beats L1, L2"], rows, "llrrrrrrr")
+
+
 @renderer("gradnet-equal-time")
 def _gradnet_equal_time(results: Path) -> str:
     """Every method on G-PT and plain renders, ordered by total time (render + denoise, medians)."""
