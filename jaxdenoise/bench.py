@@ -16,9 +16,10 @@ auxiliary buffer come out of it together, so every method pays that pass whole);
 pass makes ``dx``, ``dy`` beside them (with ``--primal gpt`` the colour is G-PT's primal), and a
 buffer-only render of the same frame is timed beside it (``buffer_seconds``, `jaxdenoise.data`). A
 method that reads ``dx``/``dy``, or the colour of a frame whose colour is the G-PT primal, is
-charged the gradient frame's time; any other method the buffer-only render's. Each record also keeps the whole frame's time
-(``frame_render_seconds``) and the raw input's error on that frame (``input_relmse``), so every
-table row shows the error it started from and flags a method that made the image worse.
+charged the gradient frame's time; any other method the buffer-only render's. Each record also
+keeps the whole frame's time (``frame_render_seconds``) and the raw input's error on that frame
+(``input_relmse``), so every table row shows the error it started from and flags a method that
+made the image worse.
 
 Output policy (`inference.OUTPUT_POLICY`): every image is scored as the user gets it, negative
 samples set to 0; each record counts the pixels changed (``negative_clamped``), its notes say so
