@@ -409,21 +409,18 @@ def _noisy_frame(loaded, spp, fseed, settings, fields, samples_per_pass, shift, 
     """
     record_feats = [f for f in FEATURES if f in fields or f"{f}_var" in fields]
     gradient_frame = any(f in fields for f in GRADIENT_FIELDS)
-    if gradient_frame and not buffer_pass:
+    data, buffer_seconds, compile_seconds = None, None, 0.0
+    if buffer_pass or not gradient_frame:
         with RenderTimer() as timer:
-            frame, stats = _gradients(loaded, spp, fseed, settings, samples_per_pass, shift, primal,
-                                      gradient_emission, record_feats)
-        return frame, timer.seconds, timer.compile_seconds, None, stats
-    with RenderTimer() as timer:
-        data = render_buffers(loaded, spp=spp, seed=fseed, settings=settings, record=record_feats,
-                              samples_per_pass=samples_per_pass, on_pass=tick)
-    if not gradient_frame:
-        return data, timer.seconds, timer.compile_seconds, None, None
-    buffer_seconds, compile_seconds = timer.seconds, timer.compile_seconds
+            data = render_buffers(loaded, spp=spp, seed=fseed, settings=settings, record=record_feats,
+                                  samples_per_pass=samples_per_pass, on_pass=tick)
+        if not gradient_frame:
+            return data, timer.seconds, timer.compile_seconds, None, None
+        buffer_seconds, compile_seconds = timer.seconds, timer.compile_seconds
     with RenderTimer() as timer:
         frame, stats = _gradients(loaded, spp, fseed, settings, samples_per_pass, shift, primal,
                                   gradient_emission, record_feats)
-    for k, v in data.items():
+    for k, v in (data or {}).items():
         if k in ("color", "color_var") and primal == "gpt":
             continue  # the colour is the G-PT primal, not the base paths' mean
         if isinstance(v, np.ndarray) and not np.array_equal(v, frame.get(k)):

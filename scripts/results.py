@@ -424,41 +424,34 @@ def _gradnet_ratios(results: Path) -> str:
                   "frames where GradNet beats L1, L2"], rows)
 
 
-@renderer("gradnet-primal")
-def _gradnet_primal(results: Path) -> str:
-    """The same validation frames with I_b the base paths' mean and the G-PT primal (issue 35 item 1):
-    mean RelMSE per method and the frames where GradNet beats L1, L2 (`gradnet_eval.py` reports)."""
+def gradnet_eval_pairs(results: Path, column: str, runs: list[tuple[str, str]], ratios: bool) -> str:
+    """`gradnet_eval.py` reports side by side, one row per (rate, report): mean RelMSE of the input,
+    the solvers and GradNet (best in bold), with ``ratios`` GradNet's ratio to each solver, and the
+    frames where GradNet beats L1, L2. ``runs``: (label, JSON path), the first report's rates."""
     methods = ["input", "poisson-l2", "poisson-l1", "gradnet"]
+    loaded = [(label, load(results, rel)) for label, rel in runs]
     rows = []
-    runs = [("base paths' mean", load(results, "gradnet_primal/val_base.json")),
-            ("G-PT primal", load(results, "gradnet_primal/val_gpt.json"))]
-    for spp in sorted(runs[0][1]["summary"], key=int):
-        for label, d in runs:
+    for spp in sorted(loaded[0][1]["summary"], key=int):
+        for label, d in loaded:
             if spp not in d["summary"]:
-                raise PageError(f"gradnet_primal: {label} has no {spp}-spp summary")
+                raise PageError(f"{column} {label!r}: no {spp}-spp summary")
             s = d["summary"][spp]
             vals = [s[m]["relmse"] for m in methods]
-            rows.append([spp, label] + bold_min([num(v) for v in vals], vals)
+            extra = [f"{num(s['l1_over_gradnet'], '.2f')}x", f"{num(s['l2_over_gradnet'], '.2f')}x"] if ratios else []
+            rows.append([spp, label] + bold_min([num(v) for v in vals], vals) + extra
                         + [f"{s['gradnet_wins_per_frame_l1']}, {s['gradnet_wins_per_frame_l2']} of {s['frames']}"])
-    return table(["spp", "I_b", *methods, "frames where GradNet beats L1, L2"], rows, "llrrrrr")
+    head = ["spp", column, *methods] + (["L1 / GradNet", "L2 / GradNet"] if ratios else [])
+    head.append("frames where GradNet beats L1, L2")
+    return table(head, rows, "ll" + "r" * (len(head) - 2))
 
 
-@renderer("gradnet-test256")
-def _gradnet_test256(results: Path) -> str:
-    """The 256x256 G-PT test frames (issue 35 items 1 and 6): each GradNet weights' report of
-    `gradnet_eval.py` beside the solvers it scored, mean RelMSE and per-frame wins."""
-    runs = [("shipped (base-path data)", load(results, "gradnet_primal/test256_gpt_shipped.json")),
-            ("G-PT run (unsupervised selection)", load(results, "gradnet_primal/test256_gpt_run.json"))]
-    rows = []
-    for spp in sorted(runs[0][1]["summary"], key=int):
-        for label, d in runs:
-            s = d["summary"][spp]
-            vals = [s[m]["relmse"] for m in ("input", "poisson-l2", "poisson-l1", "gradnet")]
-            rows.append([spp, label] + bold_min([num(v) for v in vals], vals)
-                        + [f"{num(s['l1_over_gradnet'], '.2f')}x", f"{num(s['l2_over_gradnet'], '.2f')}x",
-                           f"{s['gradnet_wins_per_frame_l1']}, {s['gradnet_wins_per_frame_l2']} of {s['frames']}"])
-    return table(["spp", "gradnet weights", "input", "poisson-l2", "poisson-l1", "gradnet", "L1 / GradNet",
-                  "L2 / GradNet", "frames where GradNet beats L1, L2"], rows, "llrrrrrrr")
+# issue 35 item 1: the same validation frames with I_b the base paths' mean and the G-PT primal
+bind("gradnet-primal", gradnet_eval_pairs, "I_b",
+     [("base paths' mean", "gradnet_primal/val_base.json"), ("G-PT primal", "gradnet_primal/val_gpt.json")], False)
+# issue 35 items 1 and 6: the 256x256 G-PT test frames, the shipped weights and the first G-PT run
+bind("gradnet-test256", gradnet_eval_pairs, "gradnet weights",
+     [("shipped (base-path data)", "gradnet_primal/test256_gpt_shipped.json"),
+      ("G-PT run (unsupervised selection)", "gradnet_primal/test256_gpt_run.json")], True)
 
 
 @renderer("gradnet-equal-time")

@@ -35,8 +35,9 @@ statistic) and the output scaled back, so ``f(k x) = k f(x)``. The output mapped
 ``max(y, 0)^gamma``; loss = RelMSE in HDR with
 eps = 1e-3 (Eq. 5), plus (ours, ``level_weight``, 4 by default; 0 for the paper's recipe) the same
 term on 8x8 block means, which keeps the colour level (docs/methods/demc.md). Xavier initialisation
-of the encoder, latent and fusion convs (Sec. 4.2). The paper's channel widths are not legible: ours are ``Config.widths`` (docs/methods/demc.md gives the
-parameter count). Any input size: padded to a multiple of 32 and cropped back.
+of the encoder, latent and fusion convs (Sec. 4.2). The paper's channel widths are not legible:
+ours are ``Config.widths`` (docs/methods/demc.md gives the parameter count). Any input size: padded
+to a multiple of 32 and cropped back.
 """
 from __future__ import annotations
 
