@@ -1,6 +1,6 @@
-"""DEMC's colour level and exposure (issue 33, checks 3 and "colour and energy"): does a network keep
-the reference's brightness in every colour channel, at every rate, and does its output scale with
-its input's exposure?
+"""A network's colour level and exposure (DEMC, issue 33; RAE, issue 34: checks 3 and "colour and
+energy"): does it keep the reference's brightness in every colour channel, at every rate, and does
+its output scale with its input's exposure?
 
 1. **Level**: for each method and each frame of each ``--data`` folder at each rate, the box mean
    (15 x 15 px) of the output over that of the reference, per colour channel, median over the pixels
@@ -8,7 +8,10 @@ its input's exposure?
    is left out. 1.0 = the reference's level. The issue's check asks for surface pixels only
    (depth > 0, not emitters); the frames here carry neither depth nor an emitter mask (they were
    rendered with the buffers DEMC reads), so emitters seen directly are counted with the rest.
-2. **Exposure**: on the first frame of each folder at 4 spp, ``f(k x)`` against ``k f(x)`` for
+2. **Halo**: pixels whose output (channel mean) is above 4x the reference's largest value in the
+   9 x 9 square around them, summed over the frames of a rate (issue 34's check counts surface
+   pixels; here every pixel).
+3. **Exposure**: on the first frame of each folder at 4 spp, ``f(k x)`` against ``k f(x)`` for
    ``k`` in 1/16, 1/4, 4, 16: the largest ``|f(k x) - k f(x)|`` over the largest ``|k f(x)|``.
 
     python experiments/demc_levels.py --data data/library_eval4k,data/heldout --out docs/results/demc_rates
@@ -19,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import sys
 from pathlib import Path
 
@@ -34,6 +38,7 @@ from common import all_measured, box_mean, num, write_study  # noqa: E402
 BOX = 15
 FLOOR = 1e-3
 FACTORS = (1 / 16, 1 / 4, 4.0, 16.0)
+HALO, HALO_WINDOW = 4.0, 9
 
 
 def frame_levels(out: np.ndarray, ref: np.ndarray) -> list[float]:
@@ -45,6 +50,21 @@ def frame_levels(out: np.ndarray, ref: np.ndarray) -> list[float]:
     return [float(np.median(bo[..., c][lit] / np.maximum(br[..., c][lit], 1e-12))) for c in range(3)]
 
 
+def halo_pixels(out: np.ndarray, ref: np.ndarray) -> int:
+    """Pixels whose output (mean of the channels) is above `HALO` times the reference's largest value
+    in the `HALO_WINDOW` square around them: light drawn where the reference has none near (issue 34's
+    ring around a copper sphere)."""
+    from scipy.ndimage import maximum_filter
+
+    o, r = np.asarray(out, np.float64).mean(-1), np.asarray(ref, np.float64)[..., :3].mean(-1)
+    return int(np.sum(o > HALO * maximum_filter(r, size=HALO_WINDOW, mode="nearest") + 1e-6))
+
+
+def _trained_for(folder: str) -> str:
+    """The method a weights folder was trained for (its config.json's ``method``; demc for older ones)."""
+    return json.loads((Path(folder) / "config.json").read_text()).get("method", "demc")
+
+
 def measure(methods: list[str], folders: list[str], spps: list[int]) -> dict:
     from jaxdenoise import metrics
     from jaxdenoise.api import resolve
@@ -54,20 +74,21 @@ def measure(methods: list[str], folders: list[str], spps: list[int]) -> dict:
 
     res = {"box": BOX, "floor": FLOOR, "spps": spps, "folders": folders, "methods": {}}
     for entry in methods:
-        name, _, weights = entry.partition("=")  # "demc" or "LABEL=WEIGHTS_FOLDER" (a demc weights folder)
-        m, params = resolve("demc" if weights else name, weights or None)
+        name, _, weights = entry.partition("=")  # "demc" or "LABEL=WEIGHTS_FOLDER" (its config names the method)
+        m, params = resolve(_trained_for(weights) if weights else name, weights or None)
         fn = inference_fn(m)
         rec = {"config": {k: v for k, v in dataclasses.asdict(m.config).items() if k in ("exposure", "train_spps")},
                "levels": {}, "exposure": {}}
-        rec["scores"] = {}
+        rec["scores"], rec["halo"] = {}, {}
         for folder in folders:
-            per_rate, scores = {}, {}
+            per_rate, scores, halos = {}, {}, {}
             for shot in discover(folder):
                 ref = read_image(shot.reference)
                 for spp, renders in sorted(renders_by_spp(shot, set(spps)).items()):
                     b, _ = read_buffers(renders[0].path)
                     y = np.asarray(fn(params, prepare(m, b)))
                     per_rate.setdefault(str(spp), []).append(frame_levels(y, ref))
+                    halos.setdefault(str(spp), []).append(halo_pixels(y, ref))
                     scores.setdefault(str(spp), []).append([float(metrics.relmse(y, ref[..., :3])),
                                                             float(metrics.ssim(y, ref[..., :3]))])
                     if spp == 4 and folder not in rec["exposure"]:
@@ -81,13 +102,14 @@ def measure(methods: list[str], folders: list[str], spps: list[int]) -> dict:
                                                    "factors": list(FACTORS), "max_rel_diff": worst}
             rec["levels"][folder] = per_rate
             rec["scores"][folder] = scores
+            rec["halo"][folder] = halos
             print(name, folder, {s: np.round(np.median(v, 0), 3).tolist() for s, v in per_rate.items()}, flush=True)
         res["methods"][name] = rec
     return res
 
 
 def page(res: dict) -> str:
-    lines = ["# DEMC: colour level and exposure", "",
+    lines = ["# Colour level and exposure: " + ", ".join(f"`{n}`" for n in res["methods"]), "",
              f"Level = box mean ({res['box']}x{res['box']} px) of the output over the reference's, per channel, "
              f"median over the pixels where the reference's box mean is above {res['floor']:g} (frame border "
              "left out); per rate the median over frames, and the frame furthest from 1 (issue 33 asks for "
@@ -96,8 +118,10 @@ def page(res: dict) -> str:
                                  if all("scores" in r for r in res["methods"].values()) else ""), ""]
     for folder in res["folders"]:
         scored = all("scores" in rec for rec in res["methods"].values())  # (older runs recorded levels only)
+        halo = all("halo" in rec for rec in res["methods"].values())
         lines += [f"## `{folder}`", "", "| method | spp | frames | R | G | B | furthest frame (channel) |"
-                  + (" RelMSE | SSIM |" if scored else ""), "|---|---:|---:|---:|---:|---:|---:|" + ("---:|---:|" if scored else "")]
+                  + (" RelMSE | SSIM |" if scored else "") + (" halo px |" if halo else ""),
+                  "|---|---:|---:|---:|---:|---:|---:|" + ("---:|---:|" if scored else "") + ("---:|" if halo else "")]
         for name, rec in res["methods"].items():
             for spp, frames in rec["levels"][folder].items():
                 lv = np.asarray(frames)
@@ -108,6 +132,8 @@ def page(res: dict) -> str:
                 if scored:
                     sc = np.mean(rec["scores"][folder][spp], 0)
                     row += f" {num(float(sc[0]), '.4f')} | {num(float(sc[1]), '.3f')} |"
+                if halo:
+                    row += f" {sum(rec['halo'][folder][spp])} |"
                 lines.append(row)
         lines.append("")
     lines += ["## Exposure", "", "`max |f(k x) - k f(x)| / max |k f(x)|` over k in "

@@ -13,12 +13,18 @@ Demodulation (`demodulate` / `remodulate`) divides the noisy colour by the first
 network or filter sees untextured illumination (Chaitanya et al. 2017, Sec. 3.2 and Sec. 5.1
 "untextured lighting"; Bako et al. 2017, Sec. 4.1, whose ``albedo + eps`` with ``eps = 0.00316`` is
 the default here).
+
+Exposure (`color_mean`, `exposure_level`, `exposure_scale`): a network that should answer a frame
+``k`` times brighter with an output ``k`` times brighter (``f(k x) = k f(x)``, what OIDN's
+``inputScale`` offers) scales the colour to `EXPOSURE_LEVEL` by a whole-frame statistic that is
+homogeneous of degree 1 and scales the output back (`demc` and `rae` with ``exposure = "frame"``).
 """
 from __future__ import annotations
 
 import dataclasses
 from typing import Any, Callable
 
+import jax
 import jax.numpy as jnp
 from .errors import JaxdenoiseError
 
@@ -28,6 +34,10 @@ MU_DEFAULT = 16.0
 GAMMA_DEFAULT = 2.2
 # Albedo epsilon of Bako et al. 2017, Sec. 4.1 (``c / (albedo + 0.00316)``).
 ALBEDO_EPS_DEFAULT = 0.00316
+# ``exposure = "frame"`` (ours, docs/methods/demc.md): the level a frame's colour is scaled to, and the
+# quantile of the luminance above which pixels are clipped when the level is measured.
+EXPOSURE_LEVEL = 0.2
+EXPOSURE_CLIP_QUANTILE = 0.999
 
 
 def _float(x: Any) -> jnp.ndarray:
@@ -194,6 +204,49 @@ SRGB = Transfer("srgb", srgb, inv_srgb)
 TRANSFERS: dict[str, Transfer] = {t.name: t for t in (IDENTITY, GAMMA, LOG, MU_LAW, SRGB)}
 
 
+def luminance(c: Any) -> jnp.ndarray:
+    """Rec. 709 luminance of ``(..., 3)`` linear RGB: ``(...)``."""
+    return 0.2126 * c[..., 0] + 0.7152 * c[..., 1] + 0.0722 * c[..., 2]
+
+
+def color_mean(color: Any) -> jnp.ndarray:
+    """The per-channel mean colour of a frame with every pixel whose luminance is above the frame's
+    `EXPOSURE_CLIP_QUANTILE` scaled down to it (hue kept: a few fireflies or a small light do not set
+    it); ``(..., H, W, 3)`` -> ``(..., 3)``. Non-finite and negative values count as 0. The training
+    pipeline carries it with every crop (a per-frame statistic) and multiplies it by the crop's colour
+    modulation (`jaxdenoise.pipeline.RADIANCE_STATS`), so a modulated crop is normalised by its
+    modulated frame's level."""
+    c = jnp.asarray(color, jnp.float32)
+    c = jnp.where(jnp.isfinite(c), jnp.maximum(c, 0.0), 0.0)
+    lum = luminance(c)
+    flat = lum.reshape(lum.shape[:-2] + (-1,))
+    clip = jnp.quantile(flat, EXPOSURE_CLIP_QUANTILE, axis=-1, method="lower")[..., None, None]
+    keep = jnp.where(lum > clip, clip / jnp.where(lum > clip, lum, 1.0), 1.0)
+    return jnp.mean(c * keep[..., None], axis=(-3, -2))
+
+
+def exposure_level(color: Any) -> jnp.ndarray:
+    """The exposure statistic: the luminance of `color_mean`, i.e. the mean luminance of the frame
+    with pixels above its `EXPOSURE_CLIP_QUANTILE` luminance clipped there; ``(..., H, W, 3)`` ->
+    ``(..., 1)``. Homogeneous of degree 1 (a frame k times brighter has a k times larger level), so
+    a method that scales by it has ``f(k x) = k f(x)`` up to rounding."""
+    return luminance(color_mean(color))[..., None]
+
+
+def exposure_scale(color: Any, carried_mean: Any = None) -> jnp.ndarray:
+    """The factor that brings a frame to `EXPOSURE_LEVEL`: ``EXPOSURE_LEVEL / level`` with the level
+    the luminance of ``carried_mean`` (a training crop's whole-frame `color_mean`) when given, else
+    `exposure_level` of ``color`` itself (at inference, the whole frame); 1 for a black frame. Shaped
+    ``(..., 1, 1, 1)`` to broadcast against the colour, and held constant in the gradient."""
+    if carried_mean is None:
+        level = exposure_level(color)
+    else:
+        level = luminance(jnp.asarray(carried_mean, jnp.float32))[..., None]
+    level = jnp.asarray(level, jnp.float32)
+    scale = jnp.where(level > 1e-12, EXPOSURE_LEVEL / jnp.maximum(level, 1e-12), 1.0)
+    return jax.lax.stop_gradient(scale)[..., None, None]
+
+
 def transfer(name: str) -> Transfer:
     """The registered pair called ``name`` (one of `TRANSFERS`)."""
     try:
@@ -205,5 +258,6 @@ def transfer(name: str) -> Transfer:
 __all__ = [
     "ALBEDO_EPS_DEFAULT", "GAMMA_DEFAULT", "MU_DEFAULT", "Transfer", "TRANSFERS", "IDENTITY", "GAMMA",
     "LOG", "MU_LAW", "SRGB", "transfer", "srgb", "inv_srgb", "gamma", "inv_gamma", "log_transform", "inv_log_transform", "mu_law",
-    "inv_mu_law", "tonemap", "demodulate", "remodulate",
+    "inv_mu_law", "tonemap", "demodulate", "remodulate", "luminance", "color_mean", "exposure_level",
+    "exposure_scale", "EXPOSURE_LEVEL", "EXPOSURE_CLIP_QUANTILE",
 ]

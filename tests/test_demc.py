@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxdenoise import nn
+from jaxdenoise import color, nn
 from jaxdenoise.buffers import Buffers
 from jaxdenoise.methods import demc, get
 from jaxdenoise.pipeline import augment
@@ -167,13 +167,13 @@ def test_exposure_frame_scales_the_output_with_the_input(variant):
         out = np.asarray(demc.apply(p, dataclasses.replace(fr, color=fr.color * np.float32(k)), cfg))
         assert np.max(np.abs(out - k * base)) <= 1e-4 * k * np.max(np.abs(base))
     # the level: per frame, degree 1, clipped at the 99.9 % luminance quantile (one firefly does not set it)
-    levels = np.asarray(demc.exposure_level(np.stack([fr.color, 4 * fr.color])))[:, 0]
-    assert np.shape(demc.exposure_level(fr.color)) == (1,)  # a per-frame statistic is a small vector
+    levels = np.asarray(color.exposure_level(np.stack([fr.color, 4 * fr.color])))[:, 0]
+    assert np.shape(color.exposure_level(fr.color)) == (1,)  # a per-frame statistic is a small vector
     np.testing.assert_allclose(levels[1], 4 * levels[0], rtol=1e-6)
     hot = fr.color.copy()
     hot[0, 0] = 1e6
-    np.testing.assert_allclose(float(demc.exposure_level(hot)[0]), levels[0], rtol=0.01)
-    assert float(demc.exposure_level(np.zeros((8, 8, 3), np.float32))[0]) == 0.0
+    np.testing.assert_allclose(float(color.exposure_level(hot)[0]), levels[0], rtol=0.01)
+    assert float(color.exposure_level(np.zeros((8, 8, 3), np.float32))[0]) == 0.0
     assert float(np.max(np.asarray(demc.apply(p, dataclasses.replace(fr, color=np.zeros_like(fr.color)), cfg)))) < 1e3
     b = _batch(2, 32)
     both = np.asarray(demc.apply(p, Buffers(**{k: b[k] for k in b if k != "reference"}), cfg))
@@ -194,14 +194,14 @@ def test_color_mean_is_the_clipped_level_per_channel_and_follows_the_modulation(
     c[3, 4] = (50.0, 5.0, 1.0)
     lum = 0.2126 * c[..., 0] + 0.7152 * c[..., 1] + 0.0722 * c[..., 2]
     clip = np.sort(lum.ravel())[int(np.floor(0.999 * (lum.size - 1)))]
-    np.testing.assert_allclose(float(demc.exposure_level(c)[0]), np.minimum(lum, clip).mean(), rtol=1e-5)
-    cm = np.asarray(demc.color_mean(c))
+    np.testing.assert_allclose(float(color.exposure_level(c)[0]), np.minimum(lum, clip).mean(), rtol=1e-5)
+    cm = np.asarray(color.color_mean(c))
     assert cm.shape == (3,) and cm[0] < c[..., 0].mean()  # the hot pixel clipped, its hue kept
     frame = {"color": fr.color, "reference": fr.color}
-    item = {**frame, "stat.color_mean": np.asarray(demc.color_mean(fr.color))}
+    item = {**frame, "stat.color_mean": np.asarray(color.color_mean(fr.color))}
     out = augment(item, np.random.default_rng(3), rotate=False, flip=False)
     m = out["color"][0, 0] / fr.color[0, 0]
-    np.testing.assert_allclose(out["stat.color_mean"], np.asarray(demc.color_mean(fr.color * m)), rtol=1e-5)
+    np.testing.assert_allclose(out["stat.color_mean"], np.asarray(color.color_mean(fr.color * m)), rtol=1e-5)
     cfg = dataclasses.replace(SMALL, exposure="frame")
     np.testing.assert_allclose(np.asarray(demc.exposure_scale(out, cfg)).ravel(),
                                np.asarray(demc.exposure_scale({"color": fr.color * m}, cfg)).ravel(), rtol=1e-5)

@@ -92,7 +92,7 @@ def test_untextured_pixels_are_not_demodulated():
     ones = a.copy()
     ones[1:3, 2:4] = 1.0
     y = jnp.asarray(x[..., :3])  # any network output: remodulation multiplies back what divided
-    np.testing.assert_array_equal(rae._output(y, a, TINY), rae._output(y, ones, TINY))
+    np.testing.assert_array_equal(rae._output(y, a, 1.0, TINY), rae._output(y, ones, 1.0, TINY))
 
 
 def test_step_over_a_sequence_equals_the_training_pass():
@@ -210,3 +210,54 @@ def test_frame_weights_for_any_sequence_length():
     assert rae.frame_weights(cfg, 7) == (0.011, 0.044, 0.135, 0.325, 0.607, 0.882, 1.0)
     assert rae.frame_weights(cfg, 2) == (0.882, 1.0)
     assert rae.frame_weights(cfg, 9) == (0.011, 0.044, 0.135, 0.325, 0.607, 0.882, 1.0, 1.0, 1.0)
+
+
+def test_exposure_frame_scales_the_output_with_the_input():
+    """``exposure = "frame"``: f(k x) = k f(x) for k in 1/16..16 (issue 34 item 3), in `step` and in
+    the training pass with the carried whole-frame statistic; the paper's input ("none") does not."""
+    cfg = rae.Config(widths=(4, 4, 6, 6, 8), bottleneck=8, exposure="frame")
+    p = rae.init(jax.random.PRNGKey(1), cfg)
+    fr = _frame(16, 12, seed=3)
+    base = np.asarray(rae.apply(p, fr, cfg))
+    assert base.max() > 0
+    for k in (1 / 16, 0.25, 4.0, 16.0):
+        out = np.asarray(rae.apply(p, fr.replace(color=fr.color * k), cfg))
+        np.testing.assert_allclose(out, k * base, rtol=2e-4, atol=1e-6 * k)
+    paper = TINY
+    pp = rae.init(jax.random.PRNGKey(1), paper)
+    a, b = np.asarray(rae.apply(pp, fr, paper)), np.asarray(rae.apply(pp, fr.replace(color=fr.color * 16), paper))
+    assert np.max(np.abs(b - 16 * a)) > 1e-3 * np.max(np.abs(16 * a))
+    # a crop normalised by its whole frame's carried colour mean: the same scale as the whole frame
+    crop = {**fr.to_dict(), "color": fr.color[:8, :8], "stat.color_mean": np.asarray(color.color_mean(fr.color))}
+    np.testing.assert_allclose(np.asarray(rae.exposure_scale(crop, cfg)).ravel(),
+                               np.asarray(rae.exposure_scale(fr, cfg)).ravel(), rtol=1e-6)
+    assert set(rae.frame_stats(cfg)) == {"depth_mean", "color_mean"}
+
+
+def test_rate_channel_and_linear_input():
+    """``rate_input``: one more channel, log2(spp) / RATE_SCALE, per pixel from a sample-count map;
+    a frame without ``spp`` is refused. ``input_transform = "linear"``: the demodulated colour itself."""
+    cfg = rae.Config(widths=(4, 4, 6, 6, 8), bottleneck=8, rate_input=True)
+    assert "spp" in rae.needs(cfg) and rae.in_channels(cfg) == 8
+    fr = _frame(6, 5, seed=2).replace(spp=16)
+    x = np.asarray(rae.inputs(fr, cfg))
+    assert x.shape == (6, 5, 8)
+    np.testing.assert_allclose(x[..., -1], 4 / rae.RATE_SCALE)
+    counts = np.full((6, 5, 1), 4.0, np.float32)
+    counts[0, 0] = 64
+    xm = np.asarray(rae.inputs(fr.replace(spp_map=counts), cfg))
+    np.testing.assert_allclose(xm[..., -1], np.log2(counts[..., 0]) / rae.RATE_SCALE)
+    with pytest.raises(Exception, match="spp"):
+        rae.inputs(fr.replace(spp=None), cfg)
+    batch = {**fr.to_dict(), "color": np.stack([fr.color] * 2), "spp": np.asarray([1.0, 64.0])}
+    batch = {k: (np.stack([v] * 2) if k in ("albedo", "normal", "position", "roughness") else v) for k, v in batch.items()}
+    xb = np.asarray(rae.inputs(batch, cfg))
+    np.testing.assert_allclose(xb[:, 0, 0, -1], [0.0, 6 / rae.RATE_SCALE])
+    p = rae.init(jax.random.PRNGKey(0), cfg)
+    assert p["enc"]["0"]["w"].shape[2] == 8 and np.isfinite(np.asarray(rae.apply(p, fr, cfg))).all()
+    lin = rae.Config(widths=(4, 4, 6, 6, 8), bottleneck=8, input_transform="linear")
+    demod = np.asarray(color.demodulate(fr.color, np.clip(fr.albedo, 0, 1)))
+    np.testing.assert_allclose(np.asarray(rae.inputs(fr, lin))[..., :3], demod, rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(rae.inputs(fr, TINY))[..., :3], demod ** 0.2, rtol=1e-5)
+    with pytest.raises(Exception, match="input_transform"):
+        rae.needs(rae.Config(input_transform="log"))

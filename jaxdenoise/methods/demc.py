@@ -30,10 +30,10 @@ whole frame in training as at inference: they are declared by `frame_stats`, com
 training pipeline on each whole render and carried by its crops (`jaxdenoise.pipeline`), and
 `inputs` uses the carried values when given, else computes them from its array (at inference the
 whole frame). With ``exposure = "frame"`` (ours, the default; the paper's input is ``"none"``) the
-colour is first scaled to `EXPOSURE_LEVEL` by the frame's `exposure_level` (another such whole-frame
-statistic) and the output scaled back, so ``f(k x) = k f(x)``. The output mapped back by
-``max(y, 0)^gamma``; loss = RelMSE in HDR with
-eps = 1e-3 (Eq. 5), plus (ours, ``level_weight``, 4 by default; 0 for the paper's recipe) the same
+colour is first scaled to `jaxdenoise.color.EXPOSURE_LEVEL` by the frame's
+`jaxdenoise.color.exposure_level` (a whole-frame statistic) and the output scaled back, so
+``f(k x) = k f(x)``. The output mapped back by ``max(y, 0)^gamma``; loss = RelMSE in HDR with eps =
+1e-3 (Eq. 5), plus (ours, ``level_weight``, 4 by default; 0 for the paper's recipe) the same
 term on 8x8 block means, which keeps the colour level (docs/methods/demc.md). Xavier initialisation
 of the encoder, latent and fusion convs (Sec. 4.2). The paper's channel widths are not legible:
 ours are ``Config.widths`` (docs/methods/demc.md gives the parameter count). Any input size: padded
@@ -51,13 +51,14 @@ import numpy as np
 
 from .. import nn
 from ..buffers import Buffers
+from .. import color as color_ops
 from ..color import gamma
 from ..nn.state import call
 from ..errors import JaxdenoiseError
 from ..pipeline import carried_stat, carried_stats
 
 __all__ = ["Config", "needs", "init", "init_from_data", "apply", "forward", "loss", "relative_loss", "make_dataset", "batch",
-           "inputs", "frame_stats", "position_moments", "color_mean", "exposure_level", "exposure_scale", "num_params", "widths_of",
+           "inputs", "frame_stats", "position_moments", "exposure_scale", "num_params", "widths_of",
            "FEATURES", "TRAIN", "FROZEN", "WEIGHTS"]
 # Pixels of context a tile needs on each side (`jaxdenoise.tiling`), measured on a real frame
 # (docs/results/tiling/): with the 0.8.1 weights max |tiled - whole| / (|whole| + 0.01) of 1.3e-3 and
@@ -66,10 +67,6 @@ __all__ = ["Config", "needs", "init", "init_from_data", "apply", "forward", "los
 # paper-recipe weights needed 96.
 TILE_MARGIN = 128
 
-# `exposure = "frame"`: the level a frame's colour is scaled to before Eq. 4 (ours, docs/methods/demc.md)
-# and the quantile of the luminance above which pixels are clipped when the level is measured.
-EXPOSURE_LEVEL = 0.2
-EXPOSURE_CLIP_QUANTILE = 0.999
 EXPOSURES = ("none", "frame")
 RECIPES = ("", "paper")
 SKIP_INITS = ("decoder", "all")
@@ -319,35 +316,6 @@ def position_moments(p: jax.Array) -> tuple[jax.Array, jax.Array]:
     return mu[..., 0, 0, :], sd[..., 0, 0, :]
 
 
-def _luminance(c: jax.Array) -> jax.Array:
-    return 0.2126 * c[..., 0] + 0.7152 * c[..., 1] + 0.0722 * c[..., 2]
-
-
-def color_mean(color: Any) -> jax.Array:
-    """The per-channel mean colour of a frame with every pixel whose luminance is above the frame's
-    `EXPOSURE_CLIP_QUANTILE` scaled down to it (hue kept: a few fireflies or a small light do not set
-    it); ``(..., H, W, 3)`` -> ``(..., 3)``. Non-finite and negative values count as 0. The training
-    pipeline carries it with every crop and multiplies it by the crop's colour modulation
-    (`jaxdenoise.pipeline.RADIANCE_STATS`), so a modulated crop is normalised by its modulated
-    frame's level."""
-    c = jnp.asarray(color, jnp.float32)
-    c = jnp.where(jnp.isfinite(c), jnp.maximum(c, 0.0), 0.0)
-    lum = _luminance(c)
-    flat = lum.reshape(lum.shape[:-2] + (-1,))
-    clip = jnp.quantile(flat, EXPOSURE_CLIP_QUANTILE, axis=-1, method="lower")[..., None, None]
-    keep = jnp.where(lum > clip, clip / jnp.where(lum > clip, lum, 1.0), 1.0)
-    return jnp.mean(c * keep[..., None], axis=(-3, -2))
-
-
-def exposure_level(color: Any) -> jax.Array:
-    """The exposure statistic of ``exposure = "frame"`` (ours): the luminance of `color_mean`, i.e.
-    the mean luminance of the frame with pixels above its `EXPOSURE_CLIP_QUANTILE` luminance
-    clipped there; ``(..., H, W, 3)`` -> ``(..., 1)``. Homogeneous of degree 1 (a frame k times
-    brighter has a k times larger level), so ``f(k x) = k f(x)`` holds for the method up to
-    rounding."""
-    return _luminance(color_mean(color))[..., None]
-
-
 def frame_stats(config: Config) -> dict:
     """The per-frame statistics of `inputs` (`jaxdenoise.methods.protocol`): with ``position_norm =
     "frame"`` the world position's mean and standard deviation over the whole frame
@@ -356,7 +324,7 @@ def frame_stats(config: Config) -> dict:
     _check(config)
     stats = {}
     if config.exposure == "frame":
-        stats["color_mean"] = lambda frame: color_mean(_getter(frame)("color"))
+        stats["color_mean"] = lambda frame: color_ops.color_mean(_getter(frame)("color"))
     if config.position_norm != "frame":
         return stats
 
@@ -370,18 +338,11 @@ def frame_stats(config: Config) -> dict:
 
 def exposure_scale(buffers: Any, config: Config) -> jax.Array:
     """The factor `inputs` multiplies the colour by (1 with ``exposure = "none"``): `EXPOSURE_LEVEL`
-    over the frame's `exposure_level` (the luminance of a crop's carried `color_mean`, else the
-    array's own), 1 for a black frame; shaped ``(..., 1, 1, 1)`` to broadcast against the colour."""
+    over the frame's `jaxdenoise.color.exposure_level` (that of a crop's carried ``color_mean``, else
+    the array's own), `jaxdenoise.color.exposure_scale`."""
     if config.exposure == "none":
         return jnp.ones((), jnp.float32)
-    carried = carried_stat(buffers, "color_mean")
-    if carried is None:
-        level = exposure_level(_getter(buffers)("color"))
-    else:
-        level = _luminance(jnp.asarray(carried, jnp.float32))[..., None]
-    level = jnp.asarray(level, jnp.float32)
-    scale = jnp.where(level > 1e-12, EXPOSURE_LEVEL / jnp.maximum(level, 1e-12), 1.0)
-    return jax.lax.stop_gradient(scale)[..., None, None]
+    return color_ops.exposure_scale(_getter(buffers)("color"), carried_stat(buffers, "color_mean"))
 
 
 def inputs(params: dict, buffers: Any, config: Config) -> tuple[jax.Array, jax.Array]:

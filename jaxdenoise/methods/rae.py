@@ -43,12 +43,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import color, nn, view
-from ..buffers import Buffers
+from ..buffers import SAMPLE_COUNT_FIELD, Buffers
 from ..errors import JaxdenoiseError
 from ..pipeline import carried_stat, carried_stats
 
 __all__ = ["Config", "needs", "required", "init", "apply", "init_state", "step", "loss", "run_sequence", "inputs",
-           "make_dataset", "batch", "frame_stats", "normalized_depth", "surface_mean",
+           "make_dataset", "batch", "frame_stats", "normalized_depth", "surface_mean", "exposure_scale",
+           "rate_channel", "INPUT_TRANSFORMS", "EXPOSURES", "RECIPES", "RATE_SCALE",
            "loss_terms", "log_kernel", "num_params", "TRAIN", "WEIGHTS", "AUX"]
 # Pixels of context a tile needs on each side (`jaxdenoise.tiling`), measured on a real frame
 # (docs/results/tiling/): max |tiled - whole| / (|whole| + 0.01) of
@@ -77,6 +78,20 @@ class Config:
     # same roughness (its shot.json says which); in our procedural scenes that is an all-diffuse
     # scene, roughness 1 (data_gen.integrator's rule). Documented constant, docs/methods/rae.md.
     missing_roughness: float = 1.0
+    # What the network sees of the colour (issue 34, docs/methods/rae.md "Input transform, exposure and
+    # rate"): "power" is the paper's (the demodulated colour raised to `power`, Sec. 4.4); "linear" the
+    # demodulated colour itself (scaled by the exposure). The loss and the output stay in the
+    # `power` domain either way. A fine-tune may change it (no parameter changes shape).
+    input_transform: str = dataclasses.field(default="power", metadata={"fine_tune": True})
+    # "frame": the colour scaled to `jaxdenoise.color.EXPOSURE_LEVEL` by the frame's exposure level
+    # before the transform and the output scaled back, so f(k x) = k f(x); "none": as the paper.
+    exposure: str = dataclasses.field(default="none", metadata={"fine_tune": True})
+    # The sampling rate as an extra input channel, log2(spp) / RATE_SCALE (per pixel where the frame has
+    # a sample-count map): one more input channel (ours; the paper trains and tests at 1 spp).
+    rate_input: bool = False
+    # The training recipe the weights folder is named after: "" (the default weights) or "paper"
+    # (Sec. 5.3: 1-spp fly-throughs, the paper's input; registered as "rae-paper").
+    recipe: str = dataclasses.field(default="", metadata={"training": True})
     # Training data (Sec. 4.3, 5.3): 1-spp inputs, 7-frame sequences, batch 4; crop ours (CPU).
     train_spps: tuple[int, ...] = (1,)
     train_frames: int = 7
@@ -91,8 +106,15 @@ TRAIN: dict[str, Any] = {"optimizer": "adam", "learning_rate": 1e-3, "adam_b1": 
                          "steps": 2000, "checkpoint_every": 50}
 
 
+INPUT_TRANSFORMS = ("power", "linear")
+EXPOSURES = ("none", "frame")
+RECIPES = ("", "paper")
+# The rate channel: log2(spp) / RATE_SCALE (0 at 1 spp, 1 at 16, 1.5 at 64).
+RATE_SCALE = 4.0
+
+
 def WEIGHTS(config: Config) -> str:
-    return "rae"
+    return f"rae-{config.recipe}" if config.recipe else "rae"
 
 
 def _check(config: Config) -> None:
@@ -103,6 +125,9 @@ def _check(config: Config) -> None:
         raise JaxdenoiseError(f"rae: config.widths must give the five encoder stages, got {config.widths}")
     if config.decoder_widths is not None and len(config.decoder_widths) != 5:
         raise JaxdenoiseError(f"rae: config.decoder_widths must give five decoder stages, got {config.decoder_widths}")
+    for name, allowed in (("input_transform", INPUT_TRANSFORMS), ("exposure", EXPOSURES), ("recipe", RECIPES)):
+        if getattr(config, name) not in allowed:
+            raise JaxdenoiseError(f"rae: config.{name} is {getattr(config, name)!r}; expected one of {allowed}")
 
 
 def needs(config: Config) -> frozenset[str]:
@@ -116,6 +141,8 @@ def needs(config: Config) -> frozenset[str]:
         out.add("position")
     if "roughness" in config.aux:
         out.add("roughness")
+    if config.rate_input:
+        out.add("spp")
     return frozenset(out)
 
 
@@ -125,7 +152,7 @@ def required(config: Config) -> frozenset[str]:
 
 
 def in_channels(config: Config) -> int:
-    return 3 + sum(AUX[a] for a in config.aux)
+    return 3 + sum(AUX[a] for a in config.aux) + int(config.rate_input)
 
 
 # -- network -------------------------------------------------------------------------------------
@@ -214,24 +241,54 @@ def _linear_depth(frame: Any) -> jax.Array:
 
 
 def frame_stats(config: Config) -> dict:
-    """The per-frame statistics of `inputs` (`jaxdenoise.methods.protocol`): with the depth input,
-    ``depth_mean``, the mean linear depth over the whole frame's surface pixels (`surface_mean`),
-    which the training pipeline computes on every whole render (each frame of a sequence its own)
-    and carries with its crops."""
+    """The per-frame statistics of `inputs` (`jaxdenoise.methods.protocol`), which the training
+    pipeline computes on every whole render (each frame of a sequence its own) and carries with its
+    crops: with the depth input ``depth_mean``, the mean linear depth over the whole frame's surface
+    pixels (`surface_mean`); with ``exposure = "frame"`` the colour's ``color_mean``
+    (`jaxdenoise.color.color_mean`)."""
     _check(config)
-    return {"depth_mean": lambda frame: surface_mean(_linear_depth(frame))} if "depth" in config.aux else {}
+    stats = {}
+    if "depth" in config.aux:
+        stats["depth_mean"] = lambda frame: surface_mean(_linear_depth(frame))
+    if config.exposure == "frame":
+        stats["color_mean"] = lambda frame: color.color_mean(_get(frame, "color"))
+    return stats
+
+
+def exposure_scale(frame: Any, config: Config) -> jax.Array:
+    """What `inputs` multiplies the colour by and the output is divided by: 1 with ``exposure =
+    "none"``, else `jaxdenoise.color.exposure_scale` of the frame (of a crop's carried whole-frame
+    ``color_mean`` when it has one), ``(..., 1, 1, 1)``."""
+    if config.exposure == "none":
+        return jnp.ones((), jnp.float32)
+    return color.exposure_scale(_get(frame, "color"), carried_stat(frame, "color_mean"))
+
+
+def rate_channel(frame: Any, shape: tuple[int, ...]) -> jax.Array:
+    """The rate input ``log2(spp) / RATE_SCALE`` broadcast to ``shape`` (``(..., H, W, 1)``): per
+    pixel from the frame's sample-count map (``spp_map``, adaptive sampling) when it has one, else
+    from its ``spp`` (a scalar, or one per frame of a batch)."""
+    fields = frame.to_dict() if isinstance(frame, Buffers) else frame
+    per_pixel = fields.get(SAMPLE_COUNT_FIELD) is not None
+    spp = fields[SAMPLE_COUNT_FIELD] if per_pixel else fields.get("spp")
+    if spp is None:
+        raise JaxdenoiseError("rae: config.rate_input needs the frame's sample count ('spp'); it is never guessed")
+    spp = jnp.asarray(spp, jnp.float32)
+    if not per_pixel:
+        spp = spp.reshape(spp.shape + (1,) * 3)
+    return jnp.broadcast_to(jnp.log2(jnp.maximum(spp, 1.0)) / RATE_SCALE, shape)
 
 
 def inputs(frame: Any, config: Config) -> jax.Array:
-    """The 7 input channels (fewer with ``config.aux``) of a frame or a batch (`Buffers` or a dict
-    of the same names; a dict may carry ``normal_view`` / ``depth_linear`` already derived, and the
-    mean depth of each frame's whole render, ``stat.depth_mean`` (`frame_stats`), which then
-    normalizes the depth in place of the array's own)."""
+    """The 7 input channels (fewer with ``config.aux``, one more with ``rate_input``) of a frame or a
+    batch (`Buffers` or a dict of the same names; a dict may carry ``normal_view`` / ``depth_linear``
+    already derived, and each frame's whole-render statistics (`frame_stats`: ``stat.depth_mean``,
+    ``stat.color_mean``), which then stand in for the array's own)."""
     get = lambda f: _get(frame, f)
     c = jnp.asarray(get("color"), jnp.float32)
-    c = jnp.where(jnp.isfinite(c), jnp.maximum(c, 0.0), 0.0)
+    c = jnp.where(jnp.isfinite(c), jnp.maximum(c, 0.0), 0.0) * exposure_scale(frame, config)
     demod = color.demodulate(c, _albedo(get("albedo")), config.albedo_eps)
-    parts = [color.gamma(demod, 1.0 / config.power)]
+    parts = [color.gamma(demod, 1.0 / config.power) if config.input_transform == "power" else demod]
     has = (lambda f: f in frame) if isinstance(frame, dict) else (lambda f: False)
     if "normal" in config.aux:
         nv = get("normal_view") if has("normal_view") else view.view_normals(get("normal"), get("world_to_camera"))
@@ -243,6 +300,8 @@ def inputs(frame: Any, config: Config) -> jax.Array:
         if rough is None:
             rough = jnp.full(c.shape[:-1] + (1,), config.missing_roughness, jnp.float32)
         parts.append(jnp.clip(jnp.asarray(rough, jnp.float32), 0.0, 1.0))
+    if config.rate_input:
+        parts.append(rate_channel(frame, c.shape[:-1] + (1,)))
     x = jnp.concatenate(parts, -1)
     return jnp.where(jnp.isfinite(x), x, 0.0)
 
@@ -278,9 +337,10 @@ def _albedo(albedo: Any) -> jax.Array:
     return jnp.where(jnp.max(a, axis=-1, keepdims=True) < UNTEXTURED, 1.0, a)
 
 
-def _output(y: jax.Array, albedo: Any, config: Config) -> jax.Array:
-    """Network output (0.2-power illumination) -> HDR image, remodulated (Sec. 3.2)."""
-    return color.remodulate(color.inv_gamma(y, 1.0 / config.power), _albedo(albedo), config.albedo_eps)
+def _output(y: jax.Array, albedo: Any, scale: Any, config: Config) -> jax.Array:
+    """Network output (0.2-power illumination) -> HDR image, remodulated (Sec. 3.2) and divided by
+    the `exposure_scale` the input was multiplied by."""
+    return color.remodulate(color.inv_gamma(y, 1.0 / config.power), _albedo(albedo), config.albedo_eps) / scale
 
 
 # -- the causal surface ----------------------------------------------------------------------------
@@ -296,7 +356,7 @@ def step(params: dict, state: tuple, buffers: Buffers, config: Config) -> tuple[
     """Denoise the next frame of a sequence; returns the new state and the HDR image."""
     x, size = nn.pad_to_multiple(inputs(buffers, config), 32)
     state, y = _forward(params, x, state, config)
-    out = _output(nn.crop_to(y, size), _get(buffers, "albedo"), config)
+    out = _output(nn.crop_to(y, size), _get(buffers, "albedo"), exposure_scale(buffers, config), config)
     return state, jnp.maximum(out, 0.0)
 
 
@@ -339,17 +399,19 @@ def loss_terms(pred: jax.Array, target: jax.Array, config: Config) -> dict:
     return {"spatial": ls, "hfen": lg, "temporal": lt}
 
 
-def run_sequence(params: dict, x: jax.Array, albedo: jax.Array, config: Config) -> jax.Array:
+def run_sequence(params: dict, x: jax.Array, albedo: jax.Array, config: Config, scale: Any = None) -> jax.Array:
     """The training-time pass: ``(B, T, H, W, C)`` inputs through the network frame by frame from a
     zero state, in an unrolled loop (back-propagation through time stays fast: module docstring);
-    returns the ``(B, T, H, W, 3)`` HDR predictions (not clamped, so the loss keeps its gradient)."""
+    returns the ``(B, T, H, W, 3)`` HDR predictions (not clamped, so the loss keeps its gradient).
+    ``scale`` is each frame's `exposure_scale`, ``(B, T, 1, 1, 1)`` (None: 1)."""
+    scale = jnp.ones(x.shape[:2] + (1, 1, 1), x.dtype) if scale is None else scale
     b, t, h, w = x.shape[:4]
     xp, size = nn.pad_to_multiple(x, 32)
     state = tuple(jnp.zeros(s, x.dtype) for s in _state_shapes(config, (b,), h, w))
     outs = []
     for k in range(t):
         state, y = _forward(params, xp[:, k], state, config)
-        outs.append(_output(nn.crop_to(y, size), albedo[:, k], config))
+        outs.append(_output(nn.crop_to(y, size), albedo[:, k], scale[:, k], config))
     return jnp.stack(outs, axis=1)
 
 
@@ -363,10 +425,11 @@ def frame_weights(config: Config, t: int) -> tuple[float, ...]:
 
 
 def loss(params: dict, batch: dict, config: Config):
-    """Sec. 4.4 on a batch of sequences ``{"x": (B, T, H, W, C), "albedo", "reference": (B, T, H, W, 3)}``:
-    the frames run through the network in order from a zero state (an unrolled loop), and the
-    frame-weighted combination of the three terms is returned (with the terms as aux)."""
-    pred = run_sequence(params, batch["x"], batch["albedo"], config)
+    """Sec. 4.4 on a batch of sequences ``{"x": (B, T, H, W, C), "albedo", "reference": (B, T, H, W, 3)}``
+    (and ``"scale"``, each frame's `exposure_scale`, with ``exposure = "frame"``): the frames run
+    through the network in order from a zero state (an unrolled loop), and the frame-weighted
+    combination of the three terms is returned (with the terms as aux)."""
+    pred = run_sequence(params, batch["x"], batch["albedo"], config, batch.get("scale"))
     t = pred.shape[1]
     terms = loss_terms(pred, batch["reference"], config)
     fw = jnp.asarray(frame_weights(config, t), jnp.float32)
@@ -404,6 +467,7 @@ def _view_inputs(seq: dict, config: Config) -> dict:
 
 
 _inputs = jax.jit(inputs, static_argnums=1)
+_scale = jax.jit(exposure_scale, static_argnums=1)
 
 
 def _derive(seq: dict, config: Config) -> dict:
@@ -433,4 +497,7 @@ def batch(dataset, step: int, config: Config, rng: np.random.Generator) -> dict:
                  for i in range(config.train_batch)]
         stacked = {k: np.stack([it[k] for it in items]) for k in items[0]}
         x = np.asarray(_inputs(stacked, config))
-    return {"x": x, "albedo": stacked["albedo"], "reference": stacked["reference"]}
+        out = {"x": x, "albedo": stacked["albedo"], "reference": stacked["reference"]}
+        if config.exposure == "frame":
+            out["scale"] = np.asarray(_scale(stacked, config))
+    return out

@@ -1,0 +1,111 @@
+"""RAE at every sampling rate (issue 34): the input transforms measured at an equal budget, then the
+chosen one trained on; every run a fine-tune of the paper-recipe weights on the scene library's
+fly-throughs and the procedural families at 1/4/16 spp.
+
+    python experiments/rae_rates.py arms --steps 400 --out runs/rae_rates
+    python experiments/rae_rates.py continue --arm rate --steps 2000 --out runs/rae_rates
+
+``arms`` fine-tunes three readings of the input from ``--init`` (default the paper-recipe weights,
+``jaxdenoise/weights/rae-paper``), each with ``exposure = "frame"`` (the colour scaled to a fixed level
+by the frame's exposure statistic, the output scaled back) and the same crops (one seed):
+
+- ``power``: the paper's input, the demodulated colour raised to 0.2 (Sec. 4.4);
+- ``rate``: the same plus the sampling rate as an input channel (log2 spp / 4), its first-layer
+  weights started at 0 so the network starts as ``power``'s;
+- ``linear``: the demodulated colour itself, the 0.2 power kept in the loss and the output only.
+
+They train on ``--data`` (default ``runs/rae_rates_data``: symlinks to the library's training
+fly-throughs and the procedural ones, jaxdenoise/weights/rae/README.md) and validate on the
+library's validation fly-throughs (``--val-data``, every rate, state carried) every
+``--validate-every`` steps, keeping ``best/`` by the geometric mean of the validation RelMSE.
+``continue`` trains one arm further (the same run folder, resumed: ``--steps`` is the new total).
+Every run's record goes to ``OUT/summary.json``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from jaxdenoise import checkpoint  # noqa: E402
+from jaxdenoise.fsutil import write_json  # noqa: E402
+from jaxdenoise.methods import get  # noqa: E402
+from jaxdenoise.train import TrainConfig, load_data, train  # noqa: E402
+
+SPPS = (1, 4, 16)
+ARMS = {"power": {"input_transform": "power", "rate_input": False},
+        "rate": {"input_transform": "power", "rate_input": True},
+        "linear": {"input_transform": "linear", "rate_input": False}}
+
+
+def _method(arm: str):
+    return get("rae", train_spps=SPPS, exposure="frame", recipe="", **ARMS[arm])
+
+
+def start_weights(init: Path, method, out: Path) -> Path:
+    """``init``'s weights as a start for ``method``: with the rate channel, the first convolution gets
+    one more input row, zero (the network then starts as it was); written to ``out``."""
+    params, meta = checkpoint.load(init)
+    if method.config.rate_input:
+        w = np.asarray(params["enc"]["0"]["w"])
+        params["enc"]["0"]["w"] = np.concatenate([w, np.zeros(w.shape[:2] + (1,) + w.shape[3:], w.dtype)], 2)
+    checkpoint.save(out, params, method.config, {"method": "rae", "started_from": str(init)})
+    return out
+
+
+def _run(arm: str, data, out: Path, args, steps: int) -> dict:
+    method = _method(arm)
+    init = start_weights(Path(args.init), method, out / "start")
+    run = TrainConfig.for_method(method, steps=steps, resume=True, val_data=args.val_data, init_from=str(init),
+                                 validate_every=args.validate_every, select="geomean", progress=False,
+                                 learning_rate=args.lr)
+    t = time.perf_counter()
+    s = train(method, data, out / arm, run)
+    rec = {"steps": s["steps_done"], "steps_this_run": s["steps_this_run"], "seconds": time.perf_counter() - t,
+           "final_loss": s["final_loss"], "best_step": s["best"]["step"],
+           "best_geomean": s["best"]["relmse_geomean"], "best_per_spp": s["best"].get("per_spp"),
+           "config": ARMS[arm] | {"exposure": "frame", "train_spps": list(SPPS)},
+           "validation": [{k: v.get(k) for k in ("step", "relmse", "relmse_geomean", "per_spp", "ssim")}
+                          for v in s["validation"]]}
+    print(arm, {k: rec[k] for k in ("steps", "seconds", "best_step", "best_geomean")}, flush=True)
+    return rec
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("what", choices=("arms", "continue"))
+    ap.add_argument("--data", default="runs/rae_rates_data")
+    ap.add_argument("--val-data", default="data/rae_library_val")
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--arms", default="power,rate,linear", help=f"arms: comma list of {sorted(ARMS)}")
+    ap.add_argument("--arm", default=None, help="continue: the arm to train further")
+    ap.add_argument("--steps", type=int, default=400)
+    ap.add_argument("--validate-every", type=int, default=100)
+    ap.add_argument("--lr", type=float, default=3e-4, help="Adam's base rate (ramp-up then 1/sqrt(t), the "
+                    "module's schedule; 3e-4: the earlier CPU fine-tunes')")
+    ap.add_argument("--init", default="jaxdenoise/weights/rae-paper")
+    args = ap.parse_args()
+    out = Path(args.out)
+    arms = args.arms.split(",") if args.what == "arms" else [args.arm]
+    bad = [a for a in arms if a not in ARMS]
+    if bad:
+        raise SystemExit(f"unknown arm(s) {bad}; expected some of {sorted(ARMS)}")
+    data = load_data(_method(arms[0]), args.data, progress=False)
+    path = out / "summary.json"
+    summary = json.loads(path.read_text()) if path.is_file() else {"data": args.data, "val_data": args.val_data,
+                                                                   "lr": args.lr, "init": args.init, "runs": {}}
+    for arm in arms:
+        summary["runs"][arm] = _run(arm, data, out, args, args.steps)
+        summary["runs"][arm]["command"] = " ".join(["python", "experiments/rae_rates.py", *sys.argv[1:]])
+        write_json(path, summary)
+
+
+if __name__ == "__main__":
+    main()
