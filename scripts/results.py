@@ -448,10 +448,12 @@ def gradnet_eval_pairs(results: Path, column: str, runs: list[tuple[str, str]], 
 # issue 35 item 1: the same validation frames with I_b the base paths' mean and the G-PT primal
 bind("gradnet-primal", gradnet_eval_pairs, "I_b",
      [("base paths' mean", "gradnet_primal/val_base.json"), ("G-PT primal", "gradnet_primal/val_gpt.json")], False)
-# issue 35 items 1 and 6: the 256x256 G-PT test frames, the shipped weights and the first G-PT run
+# issue 35 items 1 and 6: the 256x256 G-PT test frames, the shipped weights and the G-PT run at half
+# and at the whole schedule (each chosen by the unsupervised loss)
 bind("gradnet-test256", gradnet_eval_pairs, "gradnet weights",
      [("shipped (base-path data)", "gradnet_primal/test256_gpt_shipped.json"),
-      ("G-PT run (unsupervised selection)", "gradnet_primal/test256_gpt_run.json")], True)
+      ("G-PT run, 16,000 steps (unsupervised selection)", "gradnet_primal/test256_gpt_run.json"),
+      ("G-PT run, 32,000 steps (unsupervised selection)", "gradnet_primal/test256_gpt_run32k.json")], True)
 
 
 @renderer("gradnet-equal-time")
