@@ -123,7 +123,7 @@ def page(res: dict) -> str:
                   + (" RelMSE | SSIM |" if scored else "") + (" halo px |" if halo else ""),
                   "|---|---:|---:|---:|---:|---:|---:|" + ("---:|---:|" if scored else "") + ("---:|" if halo else "")]
         for name, rec in res["methods"].items():
-            for spp, frames in rec["levels"][folder].items():
+            for spp, frames in sorted(rec["levels"][folder].items(), key=lambda kv: int(kv[0])):
                 lv = np.asarray(frames)
                 med = np.median(lv, 0)
                 far = lv.flat[int(np.argmax(np.abs(lv - 1.0)))]
@@ -141,7 +141,7 @@ def page(res: dict) -> str:
               "| method | exposure setting | folder | frame | max relative difference |", "|---|---|---|---|---:|"]
     for name, rec in res["methods"].items():
         for folder, e in rec["exposure"].items():
-            lines.append(f"| {name} | {rec['config']['exposure']} | `{folder}` | `{e['frame']}` | "
+            lines.append(f"| {name} | {rec['config'].get('exposure', '-')} | `{folder}` | `{e['frame']}` | "
                          f"{num(e['max_rel_diff'], '.2e')} |")
     lines += ["", "Command: `" + res["command"] + "`", ""]
     return "\n".join(lines)

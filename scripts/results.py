@@ -260,11 +260,9 @@ bind("rae-temporal", rae_temporal, "rae_temporal.json")
 bind("rae-temporal-cbox", rae_temporal, "rae_temporal_cbox.json")
 
 
-@renderer("rae-temporal-means")
-def _rae_temporal_means(results: Path) -> str:
-    """Means over the procedural fly-throughs, per rate (RelMSE, SSIM, temporal error)."""
-    d = load(results, "rae_temporal.json")
-    methods = ["input", "oidn", "rae", "rae-per-frame"]
+def rae_temporal_means(results: Path, rel: str, methods: list[str]) -> str:
+    """Means over the fly-throughs of ``rel``, per rate (RelMSE, SSIM, temporal error) of ``methods``."""
+    d = load(results, rel)
     spps = sorted({r["spp"] for r in d["rows"]})
     rows = []
     for s in spps:
@@ -274,11 +272,33 @@ def _rae_temporal_means(results: Path) -> str:
             for m in methods:
                 rs = [r[field] for r in d["rows"] if r["spp"] == s and r["method"] == m]
                 if not rs:
-                    raise PageError(f"rae_temporal.json: no {m} rows at {s} spp")
+                    raise PageError(f"{rel}: no {m} rows at {s} spp")
                 vals.append(sum(rs) / len(rs))
             cells.append(" / ".join(num(v, spec) for v in vals))
         rows.append([str(s)] + cells)
-    return table(["spp", "RelMSE: input / OIDN / rae / per frame", "SSIM", "temporal error"], rows, "rlll")
+    names = " / ".join(methods)
+    return table(["spp", f"RelMSE: {names}", "SSIM", "temporal error"], rows, "rlll")
+
+
+# the procedural fly-throughs (the paper-recipe weights, then registered as rae)
+bind("rae-temporal-means", rae_temporal_means, "rae_temporal.json", ["input", "oidn", "rae", "rae-per-frame"])
+# issue 34: the scene library's evaluation fly-throughs, the rate-general rae against the paper's recipe
+bind("rae-rates-temporal", rae_temporal_means, "rae_rates/temporal.json", ["input", "oidn", "rae-paper", "rae"])
+
+
+@renderer("rae-input-arms")
+def _rae_input_arms(results: Path) -> str:
+    """Issue 34's input transforms at an equal budget: the validation curve of each arm."""
+    d = load(results, "rae_rates/arms.json")
+    labels = {"power": "demodulated colour ^ 0.2 (the paper's)", "rate": "^ 0.2, plus the rate channel",
+              "linear": "linear (the 0.2 power in the loss only)"}
+    rows = []
+    for arm, label in labels.items():
+        for v in d["runs"][arm]["validation"]:
+            rows.append([label, f"{v['step']:,}", num(v["relmse_geomean"], ".4g")]
+                        + [num(v["per_spp"][s], ".4g") for s in ("1", "4", "16")])
+    return table(["input", "step", "validation RelMSE (geometric mean)", "1 spp (mean)", "4 spp", "16 spp"], rows,
+                 "lrrrrr") + "\n\n" + d["note"]
 
 
 @renderer("rae-train-gpu")
@@ -817,6 +837,7 @@ STUDIES: dict[str, tuple[str, str]] = {
     "gradient_emission/gradient_emission.md": ("gradient_emission", "gradient_emission/gradient_emission.json"),
     "tiling/tiling.md": ("tiling", "tiling/tiling.json"),
     "demc_rates/demc_levels.md": ("demc_levels", "demc_rates/demc_levels.json"),
+    "rae_rates/demc_levels.md": ("demc_levels", "rae_rates/demc_levels.json"),
 }
 
 # Pages written by hand that state no measured number of their own (they point to the pages above).

@@ -21,7 +21,7 @@ from jaxdenoise.methods import get  # noqa: E402
 
 def test_every_shipped_weight_has_a_golden_record():
     shipped = {n for n in make_golden.RATES}
-    for name in ("lbf", "lbf-nlm", "demc", "demc-paper", "rae", "gradnet"):
+    for name in ("lbf", "lbf-nlm", "demc", "demc-paper", "rae", "rae-paper", "gradnet"):
         folder = get(name).weights_dir
         assert (folder / "params.npz").is_file() and name in shipped
         assert (folder / "golden.json").is_file(), f"{folder}: run python tests/data/make_golden.py record {name}"

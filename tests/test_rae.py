@@ -15,7 +15,8 @@ from jaxdenoise import color, pipeline, view
 from jaxdenoise.buffers import Buffers, BuffersError
 from jaxdenoise.methods import get, rae
 
-TINY = rae.Config(widths=(4, 4, 6, 6, 8), bottleneck=8)
+# the paper's input (exposure as given, no rate channel) on a tiny network
+TINY = rae.Config(widths=(4, 4, 6, 6, 8), bottleneck=8, exposure="none", rate_input=False)
 
 
 def _camera(yaw=0.3, dist=4.0):
@@ -38,12 +39,15 @@ def _frame(h, w, seed=0, camera=None):
 
 
 def test_needs_and_the_paper_network():
-    assert get("rae").needs() == {"color", "albedo", "normal", "position", "roughness", "world_to_camera"}
-    assert get("rae").temporal == "causal"
-    p = rae.init(jax.random.PRNGKey(0), rae.Config())
+    paper = get("rae-paper")
+    assert paper.needs() == {"color", "albedo", "normal", "position", "roughness", "world_to_camera"}
+    assert get("rae").needs() == paper.needs() | {"spp"}  # the rate channel (issue 34)
+    assert get("rae").temporal == "causal" and paper.temporal == "causal"
+    p = rae.init(jax.random.PRNGKey(0), paper.config)
     kernels = [x for x in jax.tree_util.tree_leaves(p) if x.ndim == 4]
     assert len(kernels) == 36  # 7 encoder + 10 decoder + 1 output + 6 x 3 recurrent (Sec. 4.1-4.2)
-    assert rae.num_params(rae.Config()) == 2126281  # docs/methods/rae.md: the paper's 3.2 M and why
+    assert rae.num_params(paper.config) == 2126281  # docs/methods/rae.md: the paper's 3.2 M and why
+    assert rae.num_params(rae.Config()) == 2126281 + 9 * 32  # one more input channel
     assert p["enc"]["0"]["w"].shape == (3, 3, 7, 32) and p["rb"]["5"]["in"]["w"].shape[-1] == 101
 
 
@@ -255,7 +259,8 @@ def test_rate_channel_and_linear_input():
     np.testing.assert_allclose(xb[:, 0, 0, -1], [0.0, 6 / rae.RATE_SCALE])
     p = rae.init(jax.random.PRNGKey(0), cfg)
     assert p["enc"]["0"]["w"].shape[2] == 8 and np.isfinite(np.asarray(rae.apply(p, fr, cfg))).all()
-    lin = rae.Config(widths=(4, 4, 6, 6, 8), bottleneck=8, input_transform="linear")
+    lin = rae.Config(widths=(4, 4, 6, 6, 8), bottleneck=8, input_transform="linear", exposure="none",
+                     rate_input=False)
     demod = np.asarray(color.demodulate(fr.color, np.clip(fr.albedo, 0, 1)))
     np.testing.assert_allclose(np.asarray(rae.inputs(fr, lin))[..., :3], demod, rtol=1e-6)
     np.testing.assert_allclose(np.asarray(rae.inputs(fr, TINY))[..., :3], demod ** 0.2, rtol=1e-5)

@@ -49,6 +49,8 @@ def _tiny_batches() -> dict:
                  "spp": np.full(2, 4, np.float32), "guides": {"normal": u(2, 6, 6, 3)},
                  "guide_vars": {"normal": u(2, 6, 6, 1)}}
     rae_cfg = rae.Config(widths=(4, 4, 4, 4, 4), bottleneck=4)
+    rae_paper = rae.Config(widths=(4, 4, 4, 4, 4), bottleneck=4, recipe="paper", exposure="none", rate_input=False,
+                           train_spps=(1,))
     gn_cfg = gradnet.Config(widths=(4, 4, 4), res_blocks=1, g_width=4)
     gn = {f: u(2, 16, 16, 3) for f in ("color", "dx", "dy", "albedo", "normal")}
     return {
@@ -60,7 +62,9 @@ def _tiny_batches() -> dict:
                                    train_spps=(4,)),
                        {f: u(2, 32, 32, 3) for f in ("color", *demc.FEATURES, "reference")}),
         "rae": (rae_cfg, {"x": u(1, 7, 32, 32, rae.in_channels(rae_cfg)), "albedo": u(1, 7, 32, 32, 3),
-                          "reference": u(1, 7, 32, 32, 3)}),
+                          "reference": u(1, 7, 32, 32, 3), "scale": u(1, 7, 1, 1, 1)}),
+        "rae-paper": (rae_paper, {"x": u(1, 7, 32, 32, rae.in_channels(rae_paper)), "albedo": u(1, 7, 32, 32, 3),
+                                  "reference": u(1, 7, 32, 32, 3)}),
         "gradnet": (gn_cfg, {**gn, "depth": u(2, 16, 16, 1), "lambda": np.float32(1.0)}),
     }
 

@@ -38,6 +38,8 @@ _REGISTRY: dict[str, tuple[str, dict[str, Any]]] = {
     "demc-paper": ("jaxdenoise.methods.demc", {"recipe": "paper", "train_spps": (4,), "exposure": "none",
                                                "level_weight": 0.0}),
     "rae": ("jaxdenoise.methods.rae", {}),
+    "rae-paper": ("jaxdenoise.methods.rae", {"recipe": "paper", "train_spps": (1,), "exposure": "none",
+                                             "input_transform": "power", "rate_input": False}),
     "gradnet": ("jaxdenoise.methods.gradnet", {}),
 }
 

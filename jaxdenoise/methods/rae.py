@@ -85,15 +85,16 @@ class Config:
     input_transform: str = dataclasses.field(default="power", metadata={"fine_tune": True})
     # "frame": the colour scaled to `jaxdenoise.color.EXPOSURE_LEVEL` by the frame's exposure level
     # before the transform and the output scaled back, so f(k x) = k f(x); "none": as the paper.
-    exposure: str = dataclasses.field(default="none", metadata={"fine_tune": True})
+    exposure: str = dataclasses.field(default="frame", metadata={"fine_tune": True})
     # The sampling rate as an extra input channel, log2(spp) / RATE_SCALE (per pixel where the frame has
     # a sample-count map): one more input channel (ours; the paper trains and tests at 1 spp).
-    rate_input: bool = False
+    rate_input: bool = True
     # The training recipe the weights folder is named after: "" (the default weights) or "paper"
     # (Sec. 5.3: 1-spp fly-throughs, the paper's input; registered as "rae-paper").
     recipe: str = dataclasses.field(default="", metadata={"training": True})
-    # Training data (Sec. 4.3, 5.3): 1-spp inputs, 7-frame sequences, batch 4; crop ours (CPU).
-    train_spps: tuple[int, ...] = (1,)
+    # Training data (Sec. 4.3, 5.3: 1-spp inputs, the "paper" recipe; ours: 1-16), 7-frame sequences,
+    # batch 4; crop ours (CPU).
+    train_spps: tuple[int, ...] = (1, 4, 16)
     train_frames: int = 7
     train_crop: int = 64
     train_batch: int = 4

@@ -31,7 +31,7 @@ GOLDEN = Path(__file__).resolve().parent / "golden"
 SIZE = 64
 REF_SPP = 4096
 # the shipped weight -> the rate of its golden frame (what it was trained for)
-RATES = {"lbf": 4, "lbf-nlm": 4, "demc": 4, "demc-paper": 4, "rae": 1, "gradnet": 16}
+RATES = {"lbf": 4, "lbf-nlm": 4, "demc": 4, "demc-paper": 4, "rae": 1, "rae-paper": 1, "gradnet": 16}
 TOLERANCE = 0.01  # relative, on RelMSE: float32 summation order across CPUs is far inside it
 # how many times below its input's RelMSE each weight must stay: 2x, but LBF's shipped MLP reaches
 # only 1.33x on this frame (0.0486 vs 0.0644; zeroed or shuffled it scores 0.024-0.026, which the
