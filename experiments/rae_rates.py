@@ -60,7 +60,7 @@ def start_weights(init: Path, method, out: Path) -> Path:
     return out
 
 
-def _run(arm: str, data, out: Path, args, steps: int) -> dict:
+def _train_arm(arm: str, data, out: Path, args, steps: int) -> dict:
     method = _method(arm)
     init = start_weights(Path(args.init), method, out / "start")
     run = TrainConfig.for_method(method, steps=steps, resume=True, val_data=args.val_data, init_from=str(init),
@@ -102,7 +102,7 @@ def main() -> None:
     summary = json.loads(path.read_text()) if path.is_file() else {"data": args.data, "val_data": args.val_data,
                                                                    "lr": args.lr, "init": args.init, "runs": {}}
     for arm in arms:
-        summary["runs"][arm] = _run(arm, data, out, args, args.steps)
+        summary["runs"][arm] = _train_arm(arm, data, out, args, args.steps)
         summary["runs"][arm]["command"] = " ".join(["python", "experiments/rae_rates.py", *sys.argv[1:]])
         write_json(path, summary)
 

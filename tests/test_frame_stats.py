@@ -19,7 +19,7 @@ from jaxdenoise.methods import gradnet as G
 H, W, C, T = 24, 20, 12, 7  # frame, crop, frames of the video
 SPPS = (1, 4, 64)  # rae's, demc's and gradnet's training rates
 DEMC = demc.Config(train_crop=C, train_batch=4, train_spps=(4,))
-RAE = rae.Config(widths=(4, 4, 6, 6, 8), bottleneck=8, train_crop=C, train_batch=2)
+RAE = rae.Config(widths=(4, 4, 6, 6, 8), bottleneck=8, train_crop=C, train_batch=2, train_spps=(1,))
 GRAD = G.Config(widths=(8, 16, 16), g_width=8, train_crop=C, train_batch=4)
 NORM = {"mean": np.zeros(12, np.float32), "std": np.ones(12, np.float32)}  # demc's z-score: identity
 
@@ -188,7 +188,7 @@ def test_exports_keep_the_statistics(cache_env, tmp_path):
     ex = rae.make_dataset(tmp_path / "whole.npz", RAE, progress=False)
     np.testing.assert_array_equal(ex.stats["depth_mean"], seqs.whole()["stat.depth_mean"])
     b = rae.batch(ex, 0, RAE, np.random.default_rng(0))  # trains from it as from the cache
-    assert b["x"].shape == (2, T, C, C, 7)
+    assert b["x"].shape == (2, T, C, C, rae.in_channels(RAE))
 
 
 def test_a_cache_without_the_statistics_gets_them_without_decoding(cache_env, tmp_path, monkeypatch):
