@@ -48,7 +48,7 @@ BY_ENERGY = {"poisson-l1": "l1"}
 
 
 # The convolutional networks' batch check compiles a full network twice (10-16 s each): under `slow`.
-NETWORKS = ("demc", "rae", "gradnet")
+NETWORKS = ("demc", "demc-paper", "rae", "rae-paper", "gradnet")
 
 
 @pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.slow) if n in NETWORKS else n for n in names()])

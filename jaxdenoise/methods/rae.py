@@ -15,6 +15,13 @@ computed by the training pipeline on each whole render and carried by every fram
 crop (`jaxdenoise.pipeline`); `inputs` uses the carried value when given, else computes it from its
 array (at inference, the whole frame).
 
+Ours for rates beyond the paper's 1 spp (issue 34; the paper's recipe is ``rae-paper``, ``recipe =
+"paper"``): with ``exposure = "frame"`` (the default) the colour is first scaled to
+`jaxdenoise.color.EXPOSURE_LEVEL` by the frame's exposure level (another whole-frame statistic) and
+the output divided by the same factor, so ``f(k x) = k f(x)``; with ``rate_input`` (the default) an
+eighth channel holds ``log2(spp) / RATE_SCALE`` (per pixel on an adaptively sampled frame);
+``input_transform = "linear"`` feeds the demodulated colour without the power (measured, not kept).
+
 Network (Sec. 4.1-4.2, Fig. 2): five encoder stages (widths 32, 43, 57, 76, 101) of a 3x3 conv and
 a recurrent block (`jaxdenoise.nn.RecurrentBlock`: a conv on the input, concatenation with the
 hidden state, two more convs; output = new hidden state) before 2x2 max pooling; a bottleneck of
