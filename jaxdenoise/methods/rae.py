@@ -287,14 +287,16 @@ def rate_channel(frame: Any, shape: tuple[int, ...]) -> jax.Array:
     return jnp.broadcast_to(jnp.log2(jnp.maximum(spp, 1.0)) / RATE_SCALE, shape)
 
 
-def inputs(frame: Any, config: Config) -> jax.Array:
+def inputs(frame: Any, config: Config, scale: Any = None) -> jax.Array:
     """The 7 input channels (fewer with ``config.aux``, one more with ``rate_input``) of a frame or a
     batch (`Buffers` or a dict of the same names; a dict may carry ``normal_view`` / ``depth_linear``
     already derived, and each frame's whole-render statistics (`frame_stats`: ``stat.depth_mean``,
-    ``stat.color_mean``), which then stand in for the array's own)."""
+    ``stat.color_mean``), which then stand in for the array's own). ``scale``: the frame's
+    `exposure_scale` when the caller has it already (it divides the output by the same factor)."""
     get = lambda f: _get(frame, f)
+    scale = exposure_scale(frame, config) if scale is None else scale
     c = jnp.asarray(get("color"), jnp.float32)
-    c = jnp.where(jnp.isfinite(c), jnp.maximum(c, 0.0), 0.0) * exposure_scale(frame, config)
+    c = jnp.where(jnp.isfinite(c), jnp.maximum(c, 0.0), 0.0) * scale
     demod = color.demodulate(c, _albedo(get("albedo")), config.albedo_eps)
     parts = [color.gamma(demod, 1.0 / config.power) if config.input_transform == "power" else demod]
     has = (lambda f: f in frame) if isinstance(frame, dict) else (lambda f: False)
@@ -362,9 +364,10 @@ def init_state(buffers: Buffers, config: Config) -> tuple:
 
 def step(params: dict, state: tuple, buffers: Buffers, config: Config) -> tuple[tuple, jax.Array]:
     """Denoise the next frame of a sequence; returns the new state and the HDR image."""
-    x, size = nn.pad_to_multiple(inputs(buffers, config), 32)
+    scale = exposure_scale(buffers, config)
+    x, size = nn.pad_to_multiple(inputs(buffers, config, scale), 32)
     state, y = _forward(params, x, state, config)
-    out = _output(nn.crop_to(y, size), _get(buffers, "albedo"), exposure_scale(buffers, config), config)
+    out = _output(nn.crop_to(y, size), _get(buffers, "albedo"), scale, config)
     return state, jnp.maximum(out, 0.0)
 
 
@@ -504,8 +507,9 @@ def batch(dataset, step: int, config: Config, rng: np.random.Generator) -> dict:
         items = [augment({k: v[i] for k, v in derived.items()}, rng, reverse=True)
                  for i in range(config.train_batch)]
         stacked = {k: np.stack([it[k] for it in items]) for k in items[0]}
-        x = np.asarray(_inputs(stacked, config))
+        scale = _scale(stacked, config)
+        x = np.asarray(_inputs(stacked, config, scale))
         out = {"x": x, "albedo": stacked["albedo"], "reference": stacked["reference"]}
         if config.exposure == "frame":
-            out["scale"] = np.asarray(_scale(stacked, config))
+            out["scale"] = np.asarray(scale)
     return out
