@@ -59,8 +59,8 @@ __all__ = ["Config", "needs", "required", "init", "apply", "init_state", "step",
            "rate_channel", "INPUT_TRANSFORMS", "EXPOSURES", "RECIPES", "RATE_SCALE",
            "loss_terms", "log_kernel", "num_params", "TRAIN", "WEIGHTS", "AUX"]
 # Pixels of context a tile needs on each side (`jaxdenoise.tiling`), measured on a real frame
-# (docs/results/tiling/): max |tiled - whole| / (|whole| + 0.01) of
-# 1.4e-3 and RelMSE +0.04 % at 128 px, against 1.2e-2 and +0.12 % at 96.
+# (docs/results/tiling/, re-measured with the 0.9.0 weights): max |tiled - whole| / (|whole| + 0.01)
+# of 4.2e-3 and RelMSE +0.01 % at 128 px, against 1.0e-2 and -0.02 % at 96.
 TILE_MARGIN = 128
 
 # The auxiliary inputs of Sec. 3.2 and their channels (Fig. 3's ladder drops them in this order).
