@@ -99,21 +99,33 @@ def bind(name: str, fn: Callable[..., str], *args) -> None:
     TABLES[name] = lambda results: fn(results, *args)
 
 
-def bench_wide(results: Path, rel: str, methods: list[str], spps: list[int]) -> str:
+def bench_wide(results: Path, rel: str, methods: list[str], spps: list[int],
+               skipped: tuple[tuple[str, int], ...] = ()) -> str:
     """Methods down, RelMSE and SSIM per rate across, from a bench report's summary; the best
-    RelMSE and SSIM at each rate in bold."""
-    summary = load(results, rel)["summary"]
-    cells = {(m, s): summary_row(summary, m, s, rel) for m in methods for s in spps}
+    RelMSE and SSIM at each rate in bold. ``skipped``: (method, spp) cells the bench skipped on
+    every frame (each must be in the report's ``skipped`` list, with its reason printed), shown
+    as "-"."""
+    report = load(results, rel)
+    summary = report["summary"]
+    reasons = {}
+    for m, s in skipped:
+        why = {r["reason"] for r in report["skipped"] if r["method"] == m and f"spp{s:04d}" in r["file"]}
+        if not why or any(r["method"] == m and r["spp"] == s for r in summary):
+            raise PageError(f"{rel}: {m} at {s} spp is not skipped on every frame")
+        reasons[m, s] = "; ".join(sorted(why))
+    cells = {(m, s): None if (m, s) in reasons else summary_row(summary, m, s, rel) for m in methods for s in spps}
     cols: list[list[str]] = []
     for s in spps:
-        rel_v = [cells[m, s]["relmse"] for m in methods]
-        ssim_v = [cells[m, s]["ssim"] for m in methods]
-        cols.append(bold_min([num(v) for v in rel_v], rel_v))
-        cols.append(bold_max([num(v, ".4f") for v in ssim_v], ssim_v))
+        for key, fmt, pick in (("relmse", None, bold_min), ("ssim", ".4f", bold_max)):
+            have = [m for m in methods if cells[m, s] is not None]
+            vals = [cells[m, s][key] for m in have]
+            bolded = dict(zip(have, pick([num(v) if fmt is None else num(v, fmt) for v in vals], vals)))
+            cols.append([bolded.get(m, "-") for m in methods])
     header = ["method"] + [f"{s} spp {k}" for s in spps for k in ("RelMSE", "SSIM")]
-    frames = {cells[m, s]["frames"] for m in methods for s in spps}
+    frames = {c["frames"] for c in cells.values() if c is not None}
     rows = [[m] + [c[i] for c in cols] for i, m in enumerate(methods)]
-    return table(header, rows) + f"\n\nFrames per cell: {', '.join(str(f) for f in sorted(frames))}."
+    notes = "".join(f" {m} at {s} spp: skipped by the bench ({why})." for (m, s), why in reasons.items())
+    return table(header, rows) + f"\n\nFrames per cell: {', '.join(str(f) for f in sorted(frames))}.{notes}"
 
 
 def bench_time(results: Path, rel: str, methods: list[str], spp: int) -> str:
@@ -153,19 +165,13 @@ def _demc_heldout(results: Path) -> str:
 @renderer("demc-rates-library")
 def _demc_rates_library(results: Path) -> str:
     return bench_wide(results, "bench_demc_rates/library_eval/results.json",
-                      ["input", "demc-paper", "demc", "oidn"], [1, 4, 16, 64])
-
-
-@renderer("demc-rates-library-lbf")
-def _demc_rates_library_lbf(results: Path) -> str:
-    return bench_wide(results, "bench_demc_rates/library_eval_lbf/results.json",
-                      ["input", "lbf", "demc-paper", "demc", "oidn"], [4])
+                      ["input", "lbf", "demc-paper", "demc", "oidn"], [1, 4, 16, 64], skipped=(("lbf", 1),))
 
 
 @renderer("demc-rates-heldout")
 def _demc_rates_heldout(results: Path) -> str:
     return bench_wide(results, "bench_demc_rates/heldout/results.json",
-                      ["input", "demc-paper", "demc", "oidn"], [1, 4, 16, 64])
+                      ["input", "lbf", "demc-paper", "demc", "oidn"], [1, 4, 16, 64], skipped=(("lbf", 1),))
 
 
 bind("demc-heldout-time", bench_time, "bench_heldout_demc/results.json", ["bilateral", "lbf", "demc", "oidn"], 4)
