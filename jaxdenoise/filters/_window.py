@@ -17,11 +17,13 @@ unrolled in Python (one loop step per offset measured 2.3x slower on CPU): the w
 has at most ``2 unroll`` columns (``unroll`` = 8 by default: the prefilter's 11 columns are one
 step), else equal steps of at most ``unroll`` columns (55 -> 7 x 8). Steps never compute columns
 past the window's edge except to even them out: the earlier rule, steps of exactly ``unroll``,
-computed 16 columns for the prefilter's 11, and the prefilter ran 1.85x slower (1.33 s against 0.72
-s a 3-channel feature at 1200x800, interleaved runs in one process). XLA's CPU backend does not make that one pass over the image: a profile shows one fusion per
-offset that writes the offset's weight plane (the weight feeds both sums, and XLA does not
-duplicate the ``exp``), then one fusion per sum that adds the ``unroll`` weighted planes. Each step is wrapped in ``jax.checkpoint`` and
-its contribution is added to the carry outside the checkpoint, so reverse-mode AD stores only the
+computed 16 columns for the prefilter's 11, and the prefilter ran 1.85x slower (1.33 s against
+0.72 s a 3-channel feature at 1200x800, interleaved runs in one process). XLA's CPU backend does
+not make that one pass over the image: a profile shows one fusion per offset that writes the
+offset's weight plane (the weight feeds both sums, and XLA does not duplicate the ``exp``), then
+one fusion per sum that adds the ``unroll`` weighted planes. Each step is wrapped in
+``jax.checkpoint`` and its contribution is added to the carry outside the checkpoint, so
+reverse-mode AD stores only the
 step index and recomputes the step in the backward pass. The backward pass of one step holds a few
 planes per unrolled offset, so backward temporaries are O(H W C unroll), independent of the radius
 (unrolling a whole 55-offset row instead measured 49 MiB against 6 MiB for 8 at 240 x 160).
@@ -159,9 +161,8 @@ def window_sums(
     h, w = v0.shape[1:]
     ry, rx = min(radius, h - 1), min(radius, w - 1)
     ncol = 2 * rx + 1
-    # A row of up to 2 * unroll columns is one step (the prefilter's 11 columns: 1.85x faster than
-    # the 16 a step of 8 computed, measured at 1200x800); longer rows are cut into equal steps of
-    # at most ``unroll`` columns (55 -> 7 x 8).
+    # A row of up to 2 * unroll columns is one step; longer rows equal steps of at most ``unroll``
+    # columns (module docstring).
     nchunk = 1 if ncol <= 2 * unroll else -(-ncol // max(1, unroll))
     u = -(-ncol // nchunk)
     extra = nchunk * u - ncol  # column offsets past rx in the last chunk: read padding, masked below

@@ -176,8 +176,9 @@ def prefilter_guides(features: dict, variances: dict, *, prefilter: bool = True,
     Features of the same shape are filtered by one `jax.vmap` of `prefilter_features` (LBF's four
     3-channel features: one traced and compiled filter instead of four, 4.4 s against 2.4 s of
     compilation at 1200x800 and the same run time, measured in one process; outputs equal to the
-    one-by-one calls to float32 rounding, 2.4e-7 at most on the demo frame). Each input is checked on its own first, as the one-by-one call
-    does, so a bad concrete array is still refused by name."""
+    one-by-one calls to float32 rounding, 2.4e-7 at most on the demo frame). Each input is checked
+    on its own first, as the one-by-one call does, so a bad concrete array is still refused by
+    name."""
     out, groups = {}, {}
     for name, f in features.items():
         if f is None:
