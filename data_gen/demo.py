@@ -32,7 +32,7 @@ def register(sub) -> None:
 
 def run_demo(args: argparse.Namespace) -> int:
     from jaxdenoise import bench
-    from jaxdenoise.fsutil import write_json
+    from jaxdenoise.fsutil import report_path, write_json
     from jaxdenoise.methods import parse_list
 
     import data_gen
@@ -53,7 +53,7 @@ def run_demo(args: argparse.Namespace) -> int:
     total = time.perf_counter() - t0
     write_json(Path(args.out) / "demo.json", {
         "variant": variant, "scene": "data_gen.default_scene", "size": args.size, "spp": list(spp),
-        "ref_spp": args.ref_spp, "methods": methods, "cache": str(shot_dir), "render_seconds": render_s,
+        "ref_spp": args.ref_spp, "methods": methods, "cache": report_path(shot_dir), "render_seconds": render_s,
         "total_seconds": total, "rendered_now": rendered, "left_out": record.get("left_out", {}),
     })
     print(bench.markdown_table(bench.summarize(report["records"])))

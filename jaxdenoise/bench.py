@@ -53,7 +53,7 @@ from .api import resolve
 from .inference import buffers_read, inference_fn, nonnegative, notes, prepare
 from .buffers import EMISSION_FIELD, GRADIENT_FIELDS, Buffers
 from .data import Render, Shot, discover, sequences
-from .fsutil import atomic_path, write_json, write_text
+from .fsutil import atomic_path, report_path, write_json, write_text
 from .io import read_buffers, read_image
 from .methods import Method, MethodError
 from .viewer import ImageStore, write_viewer
@@ -176,11 +176,6 @@ def score(image: np.ndarray, ref: np.ndarray) -> dict[str, float]:
             "psnr": float(metrics.psnr(image, ref))}
 
 
-def _relative(path: str | os.PathLike, start: str | os.PathLike) -> str:
-    """``path`` relative to ``start`` (reports never carry absolute machine paths)."""
-    return os.path.relpath(Path(path).resolve(), Path(start).resolve())
-
-
 def _score_task(render: str, reference: str, methods: list[str], weights: dict) -> list[dict]:
     """One single-frame render scored by every method on a Dask worker (no timing)."""
     ref = read_image(reference)
@@ -259,11 +254,11 @@ def run(data_dir: str | os.PathLike, methods: Iterable[str], out_dir: str | os.P
     out_dir.mkdir(parents=True, exist_ok=True)
     dist = _distributed_scores(singles, list(resolved), {k: str(v) for k, v in (weights or {}).items()},
                                scheduler, progress) if scheduler is not None else None
-    config = {"data_dir": _relative(data_dir, out_dir), "methods": list(methods), "runs": runs,
+    config = {"data_dir": report_path(data_dir, out_dir), "methods": list(methods), "runs": runs,
               "scheduler": scheduler, "dask_workers": dist.pop("__workers__") if dist else None,
               "timing": ("on the client alone, after the distributed scoring" if scheduler else "on this machine")
               if timing else "none (quality only)",
-              "weights": {k: _relative(v, out_dir) for k, v in (weights or {}).items()}, "shots": len(shots),
+              "weights": {k: report_path(v, out_dir) for k, v in (weights or {}).items()}, "shots": len(shots),
               "sequences": len(seqs), "renders": sum(len(s.renders) for s in shots),
               "method_configs": {n: dataclasses.asdict(m.config) for n, (m, _) in resolved.items()},
               "jax": jax.__version__, "device": str(jax.devices()[0]), "cpu_count": os.cpu_count(),
@@ -331,7 +326,7 @@ def run(data_dir: str | os.PathLike, methods: Iterable[str], out_dir: str | os.P
                 r = time_sequence(m, params, frames, runs=runs, names=[str(x.path) for x in renders]) if timing \
                     else _untimed_sequence(m, params, frames, [str(x.path) for x in renders])
                 recs = [_record(s, x, name, r, img, ref, data_dir, b, buffers_read(m, b),
-                                sequence=_relative(seq.folder, data_dir), frame=s.frame, negative_clamped=c,
+                                sequence=report_path(seq.folder, data_dir), frame=s.frame, negative_clamped=c,
                                 notes=notes(m, b, sequence=True) + ([CLAMP_NOTE] if c else []))
                         for s, x, img, ref, b, c in zip(seq.shots, renders, r["images"], refs, frames,
                                                         r["negative_clamped"])]
@@ -340,7 +335,7 @@ def run(data_dir: str | os.PathLike, methods: Iterable[str], out_dir: str | os.P
                     rec["image_id"] = store.add(f"{rec['file']}|{name}", img)
                 records.extend(recs)
                 temporal.append({
-                    "sequence": _relative(seq.folder, data_dir), "render": rname, "method": name,
+                    "sequence": report_path(seq.folder, data_dir), "render": rname, "method": name,
                     "spp": renders[0].spp, "frames": len(frames), "kind": m.temporal,
                     "temporal_error": float(metrics.temporal_error(r["images"], np.stack(refs))) if len(frames) > 1 else None,
                     "relmse": float(np.mean([x["relmse"] for x in recs])),
@@ -637,8 +632,7 @@ def _cache_status() -> dict:
     compile_cache.enable()
     status = compile_cache.status()
     if status["dir"]:
-        home = os.path.expanduser("~")
-        status["dir"] = "~" + status["dir"][len(home):] if status["dir"].startswith(home + os.sep) else status["dir"]
+        status["dir"] = report_path(status["dir"])
     return status
 
 

@@ -1,6 +1,7 @@
 """Atomic file writes: everything the project writes (EXR, checkpoints, results, manifests) goes
 through `atomic_path`, so a crash or an interrupt never leaves a half-written file under the final
-name and never destroys what was there before."""
+name and never destroys what was there before. `report_path` writes a path into a report without
+this machine's absolute paths."""
 from __future__ import annotations
 
 import contextlib
@@ -82,3 +83,17 @@ def _json_default(obj: Any) -> Any:
     if isinstance(obj, os.PathLike):
         return os.fspath(obj)
     raise TypeError(f"cannot write {type(obj).__name__} to JSON")
+
+
+def report_path(path: str | os.PathLike, start: str | os.PathLike | None = None) -> str:
+    """``path`` as a report writes it, never as this machine's absolute path: ``~/...`` when it is
+    under the home directory and ``start`` is not in the same folder below it (a cache such as
+    ``~/.cache/jaxdenoise`` seen from a repository elsewhere), else relative to ``start`` (as
+    given when there is no ``start``)."""
+    p = Path(path).expanduser().resolve()
+    home = Path.home().resolve()
+    s = None if start is None else Path(start).expanduser().resolve()
+    if p.is_relative_to(home) and (s is None or not s.is_relative_to(home)
+                                   or Path(os.path.commonpath([p, s])) == home):
+        return str(Path("~") / p.relative_to(home))
+    return str(path) if s is None else os.path.relpath(p, s)

@@ -194,3 +194,17 @@ def test_plot_styles_differ_for_every_method():
     pairs = {(s["color"], s["marker"]) for s in styles.values()}
     assert len(pairs) == len(names)
     assert len({styles[n]["color"] for n in names[:20]}) == 20  # the first 20 also differ in colour alone
+
+
+def test_report_paths_never_carry_this_machines_absolute_paths(tmp_path, monkeypatch):
+    """Reports write a path relative to the report when both live in one tree (a repository), and
+    a cache under the home directory as ``~/...`` when the report is elsewhere (the demo's case)."""
+    from jaxdenoise.fsutil import report_path
+
+    home, repo = tmp_path / "home", tmp_path / "work" / "repo"
+    monkeypatch.setenv("HOME", str(home))
+    cache, out = home / ".cache" / "jaxdenoise" / "demo", repo / "docs" / "results" / "demo"
+    assert report_path(cache, out) == "~/.cache/jaxdenoise/demo"
+    assert report_path(repo / "data" / "heldout", out) == "../../../data/heldout"
+    assert report_path(home / "proj" / "data", home / "proj" / "docs") == "../data"  # a repository under ~
+    assert report_path(cache) == "~/.cache/jaxdenoise/demo"
