@@ -167,6 +167,35 @@ def render_moments(scene, *, spp: int, seed: int, settings: PathSettings, record
     return {k: (v[0].reshape(height, width, -1), v[1].reshape(height, width, -1)) for k, v in acc.items()}
 
 
+def first_hits(scene, *, spp: int = 16, seed: int = 0) -> dict[str, np.ndarray]:
+    """What each pixel's camera rays hit first, as fractions of ``spp`` rays per pixel (uniform in the
+    pixel, as the renders' box filter): ``surface`` (a shape that emits nothing), ``emitter`` (a shape
+    that is an area emitter; an environment seen directly counts as neither: depth 0). (H, W) float64
+    each. The masks the colour-level studies need (issue 33: surface pixels and emitters apart); one
+    intersection per ray, so far cheaper than a render. Vectorized (LLVM) variants only."""
+    import drjit as dr
+    import mitsuba as mi
+
+    if not isinstance(spp, (int, np.integer)) or spp < 1:
+        raise JaxdenoiseError(f"first_hits: spp must be an int >= 1, got {spp!r}")
+    if not is_vectorized():
+        raise JaxdenoiseError("first_hits needs a vectorized Mitsuba variant (llvm_*); this one is scalar "
+                              "(scripts/setup.sh installs the LLVM it needs)")
+    width, height = film_size(scene)
+    npix = width * height
+    sensor = scene.sensors()[0]
+    sampler = mi.load_dict({"type": "independent"})
+    sampler.seed(dr.opaque(mi.UInt32, derive_seed(seed, "first-hits")), npix * spp)
+    idx = dr.arange(mi.UInt32, npix * spp) // dr.opaque(mi.UInt32, spp)
+    ray, _ = _sample_wavefront(scene, sensor, sampler, idx, width)
+    si = scene.ray_intersect(ray)
+    emitter = si.is_valid() & (si.emitter(scene) != None)  # noqa: E711 - Dr.Jit's pointer comparison
+    comps = [mi.Float(dr.select(si.is_valid() & ~emitter, 1.0, 0.0)), mi.Float(dr.select(emitter, 1.0, 0.0))]
+    dr.eval(*comps)
+    (surf, _), (em, _) = block_sums(comps, npix, spp)
+    return {"surface": (surf / spp).reshape(height, width), "emitter": (em / spp).reshape(height, width)}
+
+
 def _check_record(record: Iterable[str]) -> frozenset[str]:
     record = frozenset(record)
     unknown = record - set(FEATURES)

@@ -426,6 +426,26 @@ def load_scene(scene: Any, *, width: int | None = None, height: int | None = Non
     raise SceneError(f"scene must be a scene dict, an XML path or a mitsuba.Scene, got {type(scene).__name__}")
 
 
+def scene_from_label(label: str, *, width: int, height: int):
+    """The loaded scene a render's record names (``key["scene"]`` of a shot.json): ``family:seed`` (a
+    procedural scene, `build_scene`) or ``library:<name>@<digest>`` (a library scene; an edited scene,
+    whose digest no longer matches, is refused: it is not the scene that was rendered), at the
+    render's ``width`` x ``height``."""
+    from .library import PREFIX, scene_label
+
+    if label.startswith(PREFIX):
+        name = label[len(PREFIX):].split("@", 1)[0]
+        if scene_label(name) != label:
+            raise SceneError(f"scene {label!r}: the library's '{name}' has changed since that render "
+                             f"(now {scene_label(name)!r})")
+        return load_scene(f"{PREFIX}{name}", width=width, height=height)
+    family, _, seed = label.partition(":")
+    if family not in ALL_FAMILIES or not seed.isdigit():
+        raise SceneError(f"scene {label!r}: expected 'family:seed' with a family of {ALL_FAMILIES} or "
+                         f"'{PREFIX}<name>@<digest>'")
+    return load_scene(build_scene(family, int(seed), width=width, height=height))
+
+
 def describe(scene) -> dict:
     """What a loaded scene contains: camera type, emitters, textures, BSDF kinds, roughness values."""
     import mitsuba as mi

@@ -143,7 +143,8 @@ def _run(method, data, out: Path, args, **fields) -> dict:
     s = train(method, data, out, run)
     rec = {"steps": s["steps_done"], "seconds": time.perf_counter() - t, "final_loss": s["final_loss"],
            "best_step": s["best"]["step"], "best_geomean": s["best"]["relmse_geomean"],
-           "config": {f: getattr(method.config, f) for f in ("skip_init", "loss_scale", "level_weight", "exposure")}}
+           "config": {f: getattr(method.config, f) for f in ("skip_init", "loss_scale", "level_weight", "level_pool",
+                                                             "level_scale", "exposure")}}
     print(out.name, rec, flush=True)
     return rec
 
@@ -163,6 +164,9 @@ def main() -> None:
     ap.add_argument("--init", default="jaxdenoise/weights/demc")
     ap.add_argument("--loss-scale", default="reference", choices=("reference", "output"))
     ap.add_argument("--level-weight", type=float, default=0.0)
+    ap.add_argument("--level-pool", type=int, default=8, help="finetune: the level term's block size")
+    ap.add_argument("--level-scale", default="reference", choices=("reference", "output"),
+                    help="finetune: the level term's denominator (Config.level_scale)")
     args = ap.parse_args()
     if args.what == "report":
         args.data = args.data or "data/library_eval4k,data/heldout"
@@ -172,6 +176,8 @@ def main() -> None:
     base = get("demc", train_spps=SPPS)
     data = load_data(base, args.data, progress=False)
     summary: dict = {"what": args.what, "data": args.data, "val_data": args.val_data, "steps": args.steps, "runs": {}}
+    if (out / "summary.json").exists():  # fine-tunes of one group run one after another into one folder
+        summary["runs"] = json.loads((out / "summary.json").read_text())["runs"]
     if args.what == "eq3":
         for seed in (int(s) for s in args.seeds.split(",")):
             for reading in ("decoder", "all"):
@@ -181,7 +187,10 @@ def main() -> None:
                 write_json(out / "summary.json", summary)
     else:
         name = f"scale_{args.loss_scale}" + (f"_level{args.level_weight:g}" if args.level_weight else "")
-        summary["runs"][name] = _run(base.with_config(loss_scale=args.loss_scale, level_weight=args.level_weight),
+        if args.level_weight and (args.level_pool, args.level_scale) != (8, "reference"):
+            name += f"_pool{args.level_pool}_{args.level_scale}"
+        summary["runs"][name] = _run(base.with_config(loss_scale=args.loss_scale, level_weight=args.level_weight,
+                                                      level_pool=args.level_pool, level_scale=args.level_scale),
                                      data, out / name, args, init_from=args.init)
         write_json(out / "summary.json", summary)
 

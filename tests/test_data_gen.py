@@ -337,3 +337,30 @@ def test_setup_mitsuba_falls_back_to_scalar_with_one_message():
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["scalar_rgb", "scalar_rgb"]
     assert out.stderr.count("falling back") == 1 and "apt-get install libllvm19" in out.stderr, out.stderr
+
+
+@pytest.mark.mitsuba
+def test_first_hits_tells_surfaces_emitters_and_sky_apart_and_labels_rebuild_scenes():
+    """`render.first_hits` (the colour-level studies' masks): fractions in [0, 1] that sum to at most 1;
+    on the built-in scene the pixels whose rays all hit the light are far brighter than the surfaces,
+    and pixels inside a region whose rays all hit something have depth > 0. `scenes.scene_from_label` rebuilds a render's scene
+    from its record's label (the same hits); an edited library scene and a bad label are refused."""
+    _llvm()
+    sc = data_gen.load_scene(data_gen.default_scene(width=32, height=32))
+    h = render.first_hits(sc, spp=8)
+    surf, em = h["surface"], h["emitter"]
+    assert surf.shape == em.shape == (32, 32) and surf.min() >= 0 and (surf + em).max() <= 1 + 1e-12
+    assert (em >= 1).sum() >= 4 and (surf >= 1).sum() > 500 and ((surf + em) == 0).sum() >= 1
+    b = render.render_buffers(sc, spp=8, seed=1, settings=integrator.PathSettings(), record={"depth"})
+    lum = b["color"].mean(-1)
+    assert np.median(lum[em >= 1]) > 5 * np.median(lum[surf >= 1])
+    from scipy.ndimage import minimum_filter
+    inside = minimum_filter(surf + em, size=3) >= 1  # every ray of the pixel and its neighbours hit a shape
+    assert inside.sum() > 400 and (b["depth"][..., 0][inside] > 0).all()
+    a = render.first_hits(scenes.scene_from_label("mixed:5", width=16, height=12), spp=4)
+    ref = render.first_hits(data_gen.load_scene(data_gen.build_scene("mixed", 5, width=16, height=12)), spp=4)
+    np.testing.assert_array_equal(a["surface"], ref["surface"])
+    with pytest.raises(data_gen.SceneError, match="changed since"):
+        scenes.scene_from_label("library:chess@000000000000", width=8, height=6)
+    with pytest.raises(data_gen.SceneError, match="family:seed"):
+        scenes.scene_from_label("castles:3", width=8, height=6)

@@ -247,6 +247,23 @@ def test_loss_scale_and_level_term_move_the_optimum_toward_the_mean_reference():
 
     plain, level = best(dataclasses.replace(SMALL, level_weight=0.0)), best(dataclasses.replace(SMALL, level_weight=8.0))
     assert plain == pytest.approx(0.2315, abs=2e-3) and level == pytest.approx(0.4658, abs=2e-3)
+    # an input that admits two whole crops (0.2 everywhere or 1.0 everywhere): the block means are as
+    # uncertain as the pixels, the reference-scaled level term keeps Eq. 5's 0.2315, the output-scaled
+    # one (level_weight 8) moves the gradient's zero to 0.4962 (hand-solved: 2 (v - 0.2) / 0.041 +
+    # 2 (v - 1) / 1.001 + 8 (4 v - 2.4) / (v^2 + 0.001) = 0 over the two crops)
+    crops = jnp.stack([jnp.full((8, 8, 3), 0.2), jnp.full((8, 8, 3), 1.0)])
+
+    def zero(scale):
+        cfg = dataclasses.replace(SMALL, level_weight=8.0, level_scale=scale)
+        g = jax.grad(lambda v: demc.relative_loss(jnp.full_like(crops, v), crops, cfg))
+        lo, hi = 0.2, 1.0
+        for _ in range(40):
+            lo, hi = ((lo + hi) / 2, hi) if float(g((lo + hi) / 2)) < 0 else (lo, (lo + hi) / 2)
+        return lo
+
+    assert zero("reference") == pytest.approx(0.2315, abs=1e-3) and zero("output") == pytest.approx(0.4962, abs=1e-3)
+    with pytest.raises(ValueError, match="level_scale"):
+        demc.num_params(demc.Config(level_scale="block"))
     with pytest.raises(ValueError, match="level_weight"):
         demc.num_params(demc.Config(level_weight=-1.0))
     with pytest.raises(ValueError, match="loss_scale"):

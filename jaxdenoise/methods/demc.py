@@ -113,6 +113,11 @@ class Config:
     # references, and it counteracts the per-pixel term's (docs/methods/demc.md).
     level_weight: float = dataclasses.field(default=4.0, metadata={"training": True})
     level_pool: int = dataclasses.field(default=8, metadata={"training": True})
+    # The level term's scale (ours, issue 33): "reference" divides a block's error by the reference
+    # block's square (as Eq. 5); "output" by the output block's, held constant in the gradient, so the
+    # term's optimum is the mean of the block means an input admits (at 1 spp still uncertain) while
+    # the per-pixel term stays Eq. 5.
+    level_scale: str = dataclasses.field(default="reference", metadata={"training": True})
     train_crop: int = 96
     train_batch: int = 32
 
@@ -142,6 +147,8 @@ def _check(config: Config) -> None:
         raise JaxdenoiseError(f"demc: config.skip_init is {config.skip_init!r}; expected one of {SKIP_INITS}")
     if config.loss_scale not in LOSS_SCALES:
         raise JaxdenoiseError(f"demc: config.loss_scale is {config.loss_scale!r}; expected one of {LOSS_SCALES}")
+    if config.level_scale not in LOSS_SCALES:
+        raise JaxdenoiseError(f"demc: config.level_scale is {config.level_scale!r}; expected one of {LOSS_SCALES}")
     if not config.level_weight >= 0 or int(config.level_pool) < 1:
         raise JaxdenoiseError(f"demc: config.level_weight must be >= 0 and config.level_pool >= 1, got "
                               f"{config.level_weight!r} and {config.level_pool!r}")
@@ -406,16 +413,16 @@ def loss(params: dict, batch: dict, config: Config):
 def relative_loss(out: jax.Array, ref: jax.Array, config: Config) -> jax.Array:
     """The loss of `loss` on HDR output and reference ``(..., H, W, 3)``: ``mean((y - r)^2 / (s^2 +
     eps))`` with ``s`` the reference (Eq. 5) or, for ``loss_scale = "output"``, the output without
-    its gradient; plus ``level_weight`` times the same term on ``level_pool``-pixel block means
-    (`Config.level_weight`)."""
-    def rel(y, r):
-        scale = r if config.loss_scale == "reference" else jax.lax.stop_gradient(y)
+    its gradient; plus ``level_weight`` times the same term on ``level_pool``-pixel block means, scaled
+    as ``level_scale`` says (`Config.level_weight`, `Config.level_scale`)."""
+    def rel(y, r, kind):
+        scale = r if kind == "reference" else jax.lax.stop_gradient(y)
         return jnp.mean(jnp.square(y - r) / (jnp.square(scale) + config.eps))
 
-    value = rel(out, ref)
+    value = rel(out, ref, config.loss_scale)
     if config.level_weight:
         pool = nn.AvgPool(max(1, min(int(config.level_pool), *out.shape[-3:-1])))[1]  # (a crop below 8 px: its size)
-        value = value + config.level_weight * rel(pool({}, out), pool({}, ref))
+        value = value + config.level_weight * rel(pool({}, out), pool({}, ref), config.level_scale)
     return value
 
 
