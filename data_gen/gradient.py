@@ -42,7 +42,7 @@ from .mitsuba_setup import is_vectorized, setup_mitsuba
 from .gpt import NEIGHBOURS, ShiftSettings, trace_gpt
 from .render import DEFAULT_SAMPLES_PER_PASS, camera_ray, camera_samples, block_sums, moments_to_buffers
 from .scenes import load_scene
-from jaxdenoise.buffers import GRADIENT_EMISSION_MODES
+from jaxdenoise.buffers import GRADIENT_EMISSION_MODES, PRIMALS
 from jaxdenoise.errors import JaxdenoiseError
 
 __all__ = ["render_gradients", "trace_shifted", "trace_reconnect", "OFFSETS", "SHIFTS", "DIRECT_EMISSION"]
@@ -52,7 +52,6 @@ OFFSETS: dict[str, tuple[int, int]] = {"base": (0, 0), "dx": (1, 0), "dy": (0, 1
 
 # The shift mappings: primary-sample-space replay (this module) and Kettunen's reconnection (`data_gen.gpt`).
 SHIFTS: tuple[str, ...] = ("replay", "reconnect")
-PRIMALS: tuple[str, ...] = ("base", "gpt")
 # The shift data_gen uses for dx, dy unless told otherwise (docs/results/data_gen_gradient.md).
 DEFAULT_SHIFT = "reconnect"
 # Where the directly seen emission goes (Kettunen et al. 2015's tracer: "separate", the default): kept out

@@ -13,11 +13,11 @@ on the same frames every ``--validate-every`` steps; the schedule is compressed 
 epoch of ``--epoch-patches`` patches, so that Eq. 14's lambda is on for most of the run). Writes the
 curves and the final scores as JSON and a plot.
 
-    python experiments/gradnet_ablation.py --study loss --data data/gradnet_train --val data/gradnet_val \
+    python experiments/gradnet_ablation.py --study loss --data data/gradnet_train --train-primal base --val data/gradnet_val \
         --steps 1000 --validate-every 200 --out docs/results/gradnet_ablation
-    python experiments/gradnet_ablation.py --study converged --data data/gradnet_train --val data/gradnet_val \
+    python experiments/gradnet_ablation.py --study converged --data data/gradnet_train --train-primal base --val data/gradnet_val \
         --epoch-patches 2560 --steps 32000 --validate-every 1000 --val-spps 64 --out docs/results/gradnet_ablation_converged
-    python experiments/gradnet_ablation.py --study decoder --data data/gradnet_train --val data/gradnet_val \
+    python experiments/gradnet_ablation.py --study decoder --data data/gradnet_train --train-primal base --val data/gradnet_val \
         --steps 1000 --validate-every 200 --out docs/results/gradnet_decoder
     python experiments/gradnet_ablation.py --study readings --data data/gradnet_train_gpt --val data/gradnet_val_gpt \
         --steps 3000 --epoch-patches 256 --validate-every 500 --seeds 0,1 --out docs/results/gradnet_readings
@@ -75,9 +75,11 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--seeds", help="comma-separated seeds, every variant trained once per seed (default: --seed)")
     ap.add_argument("--runs", default="runs/gradnet_ablation")
+    ap.add_argument("--train-primal", default="gpt", choices=("base", "gpt"),
+                    help="what I_b of the training renders is (gradnet.Config.train_primal; base: data/gradnet_train)")
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
-    base = dataclasses.replace(gradnet.Config(), epoch_patches=args.epoch_patches)
+    base = dataclasses.replace(gradnet.Config(), epoch_patches=args.epoch_patches, train_primal=args.train_primal)
     dataset = load_data(get("gradnet", base), args.data)
     seeds = [int(v) for v in args.seeds.split(",")] if args.seeds else [args.seed]
     results = {}

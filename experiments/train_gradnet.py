@@ -18,8 +18,8 @@ cores give; docs/results/gradnet.md).
    most 16 MiB, and the checkpoint with Adam's state is 4x that) and ``summary.json``. ``--init`` fine-tunes
    given weights instead (lambda held at its cap), ``--train-spps`` trains on other rates.
 
-    python experiments/train_gradnet.py prepare --train data/gradnet_train --val data/gradnet_val
-    python experiments/train_gradnet.py run --out OUT --runs /tmp/gradnet_gpu --seconds 420
+    python experiments/train_gradnet.py prepare --train data/gradnet_train --train-primal base --val data/gradnet_val
+    python experiments/train_gradnet.py run --train-primal base --out OUT --runs /tmp/gradnet_gpu --seconds 420
 
 Unpack ``best.tar`` here and score it with ``experiments/gradnet_eval.py --weights``.
 """
@@ -44,7 +44,7 @@ def prepare(args) -> None:
 
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
-    cfg = gradnet.Config()
+    cfg = gradnet.Config(train_primal=args.train_primal)
     ds = gradnet.make_dataset(args.train, cfg)
     out = {"train": ds.export(work / "gradnet_train.npz", n=10**9, whole=True, spps=cfg.train_spps,
                               leave_out=("reference",), max_mib=args.train_mib)}
@@ -69,7 +69,7 @@ def run(args) -> None:
     out, runs = Path(args.out), Path(args.runs)
     out.mkdir(parents=True, exist_ok=True)
     cfg = dataclasses.replace(gradnet.Config(), train_crop=args.crop, train_batch=args.batch,
-                              epoch_patches=args.epoch_patches)
+                              epoch_patches=args.epoch_patches, train_primal=args.train_primal)
     if args.train_spps:
         cfg = dataclasses.replace(cfg, train_spps=tuple(int(v) for v in args.train_spps.split(",")))
     if args.init:  # the weights went through Eq. 14's ramp: hold lambda at its cap from the first step
@@ -128,6 +128,9 @@ def main() -> None:
     r.add_argument("--train-spps", default=None, help="comma list of training rates (default: gradnet.Config's 64)")
     r.add_argument("--init", default=None, help="fine-tune these weights (a folder); Eq. 14's lambda is then "
                                                 "held at its cap from step 0")
+    for q in (p, r):
+        q.add_argument("--train-primal", default="gpt", choices=("base", "gpt"),
+                       help="what I_b of the training renders is (gradnet.Config.train_primal; base: data/gradnet_train)")
     args = ap.parse_args()
     {"prepare": prepare, "run": run}[args.cmd](args)
 

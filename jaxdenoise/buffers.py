@@ -57,6 +57,9 @@ EMISSION_FIELD = "emission"
 # How a gradient frame's dx, dy treat that emission (the EXR header's ``gradient_emission``): left out
 # (the layer present) or included (no layer; a frame without the attribute reads so).
 GRADIENT_EMISSION_MODES: tuple[str, ...] = ("separate", "included")
+# What a gradient frame's colour is (the header's ``primal``): the plain path-traced base, or the G-PT
+# primal (Kettunen et al. 2015's MIS combination of the base and offset paths: data_gen --primal gpt).
+PRIMALS: tuple[str, ...] = ("base", "gpt")
 GRADIENT_FIELDS: tuple[str, ...] = ("dx", "dy")
 # The OpenEXR standard header attribute that carries each matrix (`jaxdenoise.io` reads and writes them).
 MATRIX_HEADERS: dict[str, str] = {"world_to_camera": "worldToCamera", "world_to_ndc": "worldToNDC"}

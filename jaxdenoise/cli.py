@@ -14,6 +14,7 @@ from importlib.metadata import entry_points
 from pathlib import Path
 
 from .errors import JaxdenoiseError
+from .buffers import PRIMALS
 
 
 def _cmd_methods(args: argparse.Namespace) -> int:
@@ -193,6 +194,11 @@ def _cmd_train(args: argparse.Namespace) -> int:
             raise TrainError(f"argument --train-spps: method '{args.method}' trains at one fixed rate "
                              "(its config has no train_spps)")
         method = method.with_config(train_spps=tuple(sorted(set(args.train_spps))))
+    if args.train_primal is not None:
+        if not hasattr(method.config, "train_primal"):
+            raise TrainError(f"argument --train-primal: method '{args.method}' reads no gradient-domain base "
+                             "(its config has no train_primal)")
+        method = method.with_config(train_primal=args.train_primal)
     summary = train(method, args.data, args.out,
                     TrainConfig.for_method(method, **{k: v for k, v in options.items() if v is not None}))
     print(summary.get("line", f"train: {args.method} done; outputs in {args.out}"))
@@ -296,6 +302,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="comma-separated sampling rates of the training renders, e.g. 1,4,16,64: crops are drawn "
                         "from the renders at these rates (the method's config train_spps, written into the "
                         "weights' config.json; default: the method's own)")
+    s.add_argument("--train-primal", choices=PRIMALS,
+                   help="gradnet: what I_b of the training renders must be, the header's primal (the config's "
+                        "train_primal; default gpt, the paper's G-PT primal; base for renders without --primal gpt)")
     s.add_argument("--validate-every", type=int, help="steps between validations (default: only at the end)")
     s.add_argument("--select", choices=["mean", "geomean", "loss"],
                    help="what picks OUT/best among the validations: the mean RelMSE over the validation frames, "

@@ -91,7 +91,7 @@ BOUNDED = {"normal": (-1.0, 1.0), "albedo": (0.0, 1.0), "albedo2": (0.0, 1.0), "
 VIEW_VECTORS = ("normal_view",)
 # Derived per-pixel scalars (turned and mirrored like any image).
 DERIVED_SCALARS = ("depth_linear",)
-CACHE_VERSION = 2  # 2: camera matrices in the index
+CACHE_VERSION = 3  # 2: camera matrices in the index; 3: each render's primal (gradient frames' colour)
 # Integer bookkeeping of a whole-render export: each render's video (-1: a single shot) and frame.
 _INDEX = ("video", "frame")
 # The key prefix under which an item carries a per-frame statistic of its whole render (module
@@ -303,6 +303,7 @@ def build_cache(data_dir: str | os.PathLike, fields: Sequence[str], cache_dir: s
         entry = {"array": name, "reference": names[shot.reference], "spp": int(r.spp), "shot": label,
                  "render": r.path.name, "sequence": str(shot.folder.parent) if shot.frame is not None else None,
                  "frame": shot.frame, "filled": filled, "repaired": int(sum(attrs.get("repaired", {}).values())),
+                 "primal": r.primal,
                  **{m: np.asarray(getattr(b, m), np.float64).tolist() for m in MATRIX_FIELDS
                     if getattr(b, m) is not None}}
         if stats:
@@ -399,6 +400,12 @@ class Cache:
 
     def __len__(self) -> int:
         return len(self.frames)
+
+    def primals(self, spps: Sequence[int] | None = None) -> list:
+        """The ``primal`` header attributes of the renders (at ``spps``, or all), each once: what a
+        gradient frame's colour is (data_gen ``--primal``: "base" or "gpt"; None where the header has
+        none: a frame without gradients, or one rendered before data_gen recorded it)."""
+        return sorted({f.get("primal") for f in self.frames if spps is None or f["spp"] in set(spps)}, key=str)
 
     def render(self, i: int) -> dict[str, np.ndarray]:
         """Render ``i`` whole and unaugmented: every cached field, its reference, ``spp``, the camera
@@ -527,7 +534,7 @@ class Cache:
         summary = {"count": count, "requested": int(n), "fit": fit, "per_item_bytes": per_item, "size": size,
                    "frames": frames, "fields": self.fields, "max_mib": max_mib, "whole": bool(whole),
                    "instances": instances, "left_out": sorted(leave_out), "stats": list(self.stat_names),
-                   "spps": None if spps is None else [int(s) for s in spps],
+                   "spps": None if spps is None else [int(s) for s in spps], "primals": self.primals(spps),
                    "source": str(json.loads((self.folder / "index.json").read_text())["data_dir"])}
         enc["summary"] = np.frombuffer(json.dumps(summary).encode(), np.uint8)
         path = Path(path)
@@ -605,6 +612,12 @@ class ExportedCache:
 
     def __len__(self) -> int:
         return self.count
+
+    def primals(self, spps: Sequence[int] | None = None) -> list | None:
+        """`Cache.primals` of the cache it was exported from (over its exported rates; ``spps`` is
+        accepted for the same call and not narrowed further); None for an export written before
+        the summary recorded them."""
+        return self.summary.get("primals")
 
     def subset(self, keep: Sequence[int]) -> "ExportedCache":
         """The same export restricted to the items ``keep`` (as `Cache.subset`)."""

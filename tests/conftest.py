@@ -53,14 +53,15 @@ def frame() -> Buffers:
     return synthetic_frame()
 
 
-def make_shot(folder, ref: np.ndarray, renders: dict[int, Buffers]) -> None:
-    """Write one bench shot: reference.exr and spp{spp:04d}_00.exr per render."""
+def make_shot(folder, ref: np.ndarray, renders: dict[int, Buffers], attrs: dict | None = None) -> None:
+    """Write one bench shot: reference.exr and spp{spp:04d}_00.exr per render (header ``attrs`` added
+    to each, e.g. ``{"primal": "gpt"}`` for gradient frames as data_gen --primal gpt writes them)."""
     from jaxdenoise.io import write_buffers, write_image
 
     write_image(folder / "reference.exr", ref)
     for spp, b in renders.items():
         write_buffers(folder / f"spp{spp:04d}_00.exr", b.replace(spp=np.float32(spp)),
-                      {"render_seconds": 0.01 * spp})
+                      {"render_seconds": 0.01 * spp, **(attrs or {})})
 
 
 def fit(name: str, data, out, *, config=None, **run):

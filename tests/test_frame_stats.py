@@ -48,7 +48,7 @@ def data(tmp_path_factory):
     for t in range(T):
         d = root / "data" / "seq" / f"frame_{t:04d}"
         d.mkdir(parents=True)
-        make_shot(d, np.ones((H, W, 3), np.float32), {s: _frame(t, s) for s in SPPS})
+        make_shot(d, np.ones((H, W, 3), np.float32), {s: _frame(t, s) for s in SPPS}, {"primal": "gpt"})
     return root
 
 

@@ -3,6 +3,7 @@ post-process, the lambda schedule, and that training never reads a reference."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 
 import jax
@@ -297,7 +298,7 @@ def test_dataset_from_a_folder_and_from_its_export_without_references(tmp_path, 
         if s == 3:
             f = f.replace(color=f.color - 2.0)  # negative radiance
         (tmp_path / "data" / f"scene_{s}").mkdir(parents=True)
-        make_shot(tmp_path / "data" / f"scene_{s}", np.ones((16, 16, 3), np.float32), {64: f, 16: f})
+        make_shot(tmp_path / "data" / f"scene_{s}", np.ones((16, 16, 3), np.float32), {64: f, 16: f}, {"primal": "gpt"})
     cfg = dataclasses.replace(CFG, train_crop=8, train_batch=4)
     with pytest.warns(RuntimeWarning):
         ds = G.make_dataset(tmp_path / "data", cfg, progress=False)
@@ -318,6 +319,45 @@ def test_dataset_from_a_folder_and_from_its_export_without_references(tmp_path, 
     np.testing.assert_allclose(b["normal"], a["normal"], atol=1 / 255)
     with pytest.raises(ValueError, match="no render at spp"):
         G.make_dataset(tmp_path / "train.npz", dataclasses.replace(cfg, train_spps=(256,)), progress=False)
+
+
+def test_training_renders_must_hold_the_configured_primal(tmp_path, monkeypatch):
+    """The base image of a GradNet training render is the G-PT primal (the header's ``primal``,
+    data_gen --primal gpt; Guo et al. Sec. 5.1) unless the config says ``train_primal = "base"``: a
+    folder of base renders (or of renders from before data_gen recorded it, when the base was the only
+    I_b), or one mixing both, is refused with the fix named; an export carries the primals of its
+    cache, and one written before exports recorded them is refused."""
+    from conftest import make_shot, synthetic_frame
+
+    monkeypatch.setenv("JAXDENOISE_CACHE", str(tmp_path / "cache"))
+    fields = ("color", "dx", "dy", "albedo", "normal", "depth")
+    f = synthetic_frame(16, 16, seed=0, fields=fields)
+    for name, attrs in (("gpt", {"primal": "gpt"}), ("base", {"primal": "base"}), ("old", {})):
+        (tmp_path / name / "scene_0").mkdir(parents=True)
+        make_shot(tmp_path / name / "scene_0", np.ones((16, 16, 3), np.float32), {64: f}, attrs)
+    cfg = dataclasses.replace(CFG, train_crop=8, train_batch=4)
+    assert cfg.train_primal == "gpt" and len(G.make_dataset(tmp_path / "gpt", cfg, progress=False)) == 1
+    for name in ("base", "old"):
+        with pytest.raises(ValueError, match=r"I_b is \['base'\].*train_primal is 'gpt'.*--primal gpt"):
+            G.make_dataset(tmp_path / name, cfg, progress=False)
+        assert len(G.make_dataset(tmp_path / name, dataclasses.replace(cfg, train_primal="base"), progress=False)) == 1
+    (tmp_path / "gpt" / "scene_1").mkdir()
+    make_shot(tmp_path / "gpt" / "scene_1", np.ones((16, 16, 3), np.float32), {64: f}, {"primal": "base"})
+    with pytest.raises(ValueError, match=r"I_b is \['base', 'gpt'\]"):
+        G.make_dataset(tmp_path / "gpt", cfg, progress=False)
+    ds = G.make_dataset(tmp_path / "base", dataclasses.replace(cfg, train_primal="base"), progress=False)
+    assert ds.export(tmp_path / "base.npz", n=1, whole=True, leave_out=("reference",))["primals"] == ["base"]
+    with pytest.raises(ValueError, match="train_primal is 'gpt'"):
+        G.make_dataset(tmp_path / "base.npz", cfg, progress=False)
+    z = dict(np.load(tmp_path / "base.npz"))
+    summary = json.loads(bytes(z["summary"]).decode())
+    del summary["primals"]
+    z["summary"] = np.frombuffer(json.dumps(summary).encode(), np.uint8)
+    np.savez(tmp_path / "older.npz", **z)
+    with pytest.raises(ValueError, match="does not say which I_b"):
+        G.make_dataset(tmp_path / "older.npz", dataclasses.replace(cfg, train_primal="base"), progress=False)
+    with pytest.raises(ValueError, match="train_primal"):
+        G.Config(train_primal="primal")
 
 
 def test_an_overshooting_output_decodes_finite_with_a_finite_gradient():
@@ -351,7 +391,7 @@ def test_unsupervised_selection_reads_no_reference(tmp_path, monkeypatch):
         for s in seeds:
             (tmp_path / part / f"scene_{s}").mkdir(parents=True)
             f = synthetic_frame(16, 16, seed=s, fields=fields)
-            make_shot(tmp_path / part / f"scene_{s}", np.abs(f.color), {64: f})
+            make_shot(tmp_path / part / f"scene_{s}", np.abs(f.color), {64: f}, {"primal": "gpt"})
     cfg = dataclasses.replace(CFG, widths=(4, 4, 4), res_blocks=1, g_width=4, train_crop=8, train_batch=2)
     kw = dict(config=cfg, steps=5, val_data=str(tmp_path / "val"), validate_every=1, select="loss",
               learning_rate=1e-2, progress=False)

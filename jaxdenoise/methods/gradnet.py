@@ -53,7 +53,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import nn
-from ..buffers import EMISSION_FIELD, Buffers
+from ..buffers import EMISSION_FIELD, PRIMALS, Buffers
 from ..color import inv_log_transform, inv_mu_law, log_transform, mu_law
 from ..filters import gaussian
 from ..errors import JaxdenoiseError
@@ -113,6 +113,10 @@ class Config:
     train_crop: int = 64  # the paper's patches are 256x256 (out of reach here)
     train_batch: int = 8  # the paper's 32 (out of reach on 2 CPU cores)
     epoch_patches: int = 2560  # patches per "epoch" (ours; the paper: 11,785); sets Eq. 14 and the lr decay
+    # What I_b of the training renders must be (the header's ``primal``, data_gen --primal): "gpt", the
+    # G-PT primal of Kettunen's tracer that the paper trains on (Sec. 5.1), or "base" (the plain
+    # path-traced base: the shipped weights up to 0.9.1). A render of the other kind is refused.
+    train_primal: str = "gpt"
 
     def __post_init__(self) -> None:
         if len(self.widths) != 3 or any(int(w) < 1 for w in self.widths):
@@ -121,6 +125,8 @@ class Config:
             raise JaxdenoiseError(f"gradnet: config.head_width must be >= 0 and needs input_skip, got {self.head_width}")
         if self.weights_domain not in ("compressed", "hdr"):
             raise JaxdenoiseError(f"gradnet: config.weights_domain must be 'compressed' or 'hdr', got {self.weights_domain!r}")
+        if self.train_primal not in PRIMALS:
+            raise JaxdenoiseError(f"gradnet: config.train_primal must be one of {PRIMALS}, got {self.train_primal!r}")
         if self.compression not in ("mu-law", "log"):
             raise JaxdenoiseError(f"gradnet: config.compression must be 'mu-law' or 'log', got {self.compression!r}")
         for name in ("mu", "sigma_b2", "pp_sigma", "epoch_patches", "train_batch", "train_crop"):
@@ -528,6 +534,22 @@ def is_illegal(render: dict) -> bool:
     return bool(not np.all(np.isfinite(vals)) or np.any(np.asarray(render["color"]) < 0))
 
 
+def check_primal(data_dir, primals: list | None, want: str) -> None:
+    """Refuse training renders whose I_b is not ``want`` (`Config.train_primal`): ``primals`` are the
+    header ``primal`` values of the renders (`pipeline.Cache.primals`; None in a header: a render made
+    before data_gen recorded it, when the base was the only I_b; None for the whole list: an export
+    written before its summary recorded them)."""
+    if primals is None:
+        raise JaxdenoiseError(f"{data_dir}: this export does not say which I_b its renders hold (written before "
+                              "exports recorded the header's primal): export it again (experiments/export_training.py)")
+    found = sorted({p or "base" for p in primals})
+    if found != [want]:
+        raise JaxdenoiseError(
+            f"{data_dir}: the training renders' I_b is {found} (header 'primal'); gradnet's train_primal is {want!r}. "
+            "Render with `python -m data_gen dataset ... --primal gpt` (the paper's G-PT primal, Sec. 5.1), or train "
+            "on base renders with --train-primal base")
+
+
 def make_dataset(data_dir, config: Config, *, progress: bool = True):
     """The gradient-domain training renders at ``train_spps``, from a data_gen folder (decoded once
     into the pipeline cache, bad values zeroed and counted per render) or from an export of this
@@ -541,6 +563,7 @@ def make_dataset(data_dir, config: Config, *, progress: bool = True):
     ds = open_training_data(data_dir, ("dx", "dy", *FEATURES, EMISSION_FIELD), spps=config.train_spps,
                             progress=progress, reference=False, repair="zero", stats=frame_stats(config),
                             fill={EMISSION_FIELD: 0.0})
+    check_primal(data_dir, ds.primals(config.train_spps), config.train_primal)
     spps = {float(s) for s in config.train_spps}
     frames = getattr(ds, "frames", None)  # a cache counts the values it had to zero (a folder's illegal renders)
     pool, keep = [], []
