@@ -4,6 +4,8 @@ from scratch, and the loss's per-pixel scale as a fine-tune of the shipped weigh
     python experiments/demc_recipes.py eq3 --steps 250 --seeds 0,1 --lr 5e-4 --out runs/demc_eq3
     python experiments/demc_recipes.py finetune --loss-scale output --steps 700 --out runs/demc_scale
     python experiments/demc_recipes.py finetune --level-weight 4 --steps 700 --out runs/demc_level
+    python experiments/demc_recipes.py finetune --level-weight 16 --level-pool 16 --level-scale output \
+        --steps 500 --validate-every 50 --out runs/demc_level3
 
 Both train on ``--data`` (default ``runs/demc_rates_data``: the scene library's training scenes and
 40 procedural ``mixed`` scenes at 1/4/16/64 spp, jaxdenoise/weights/demc/README.md) and validate on
@@ -103,7 +105,9 @@ def page(res: dict) -> str:
         at = [v for v in r["validation"] if v["step"] == r["scored_step"]]
         cfg = r["config"]
         recipe = (f"Eq. 3 `{cfg['skip_init']}`" if r["what"] == "eq3" else
-                  f"loss scale `{cfg['loss_scale']}`, level weight {num(float(cfg.get('level_weight', 0.0)), 'g')}")
+                  f"loss scale `{cfg['loss_scale']}`, level weight {num(float(cfg.get('level_weight', 0.0)), 'g')}"
+                  + (f" on {cfg['level_pool']}x{cfg['level_pool']} blocks scaled by the `{cfg['level_scale']}`"
+                     if "level_scale" in cfg else ""))
         lines.append(f"| {name} | {recipe} | {'random' if r['init_from'] is None else '`' + Path(r['init_from']).name + '`'} | "
                      f"{r['steps']} | {r['crops']} | {num(float(r['learning_rate']), 'g')} | {r['scored_step']} | "
                      f"{num(at[0]['relmse_geomean'], '.4f') if at else '-'} | {num(r['seconds'], '.0f')} |")
