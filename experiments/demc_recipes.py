@@ -98,7 +98,9 @@ def page(res: dict) -> str:
              "library's `val` split (geometric mean of RelMSE over 8 frames). Scored here: each run's choice "
              "(`best/`, or its last step where `best/` kept the starting weights) on the folders below, never "
              "trained or selected on. Level = median over frames of the 15x15 box-mean ratio output / reference "
-             "per channel (`experiments/demc_levels.py`); RelMSE and SSIM are means over frames.", "",
+             "per channel (`experiments/demc_levels.py`" + ("; surface pixels only, emitters left out"
+                                                          if sc.get("masks") == "scene" else "")
+             + "); RelMSE and SSIM are means over frames.", "",
              "## Runs", "", "| run | recipe | start | steps | crops | Adam lr | scored step | validation geomean there | seconds |",
              "|---|---|---|---:|---:|---:|---:|---:|---:|"]
     for name, r in runs.items():

@@ -828,6 +828,7 @@ STUDIES: dict[str, tuple[str, str]] = {
     "poisson_rendered/poisson.md": ("bench_poisson", "poisson_rendered/poisson.json"),
     "data_gen_gradient.md": ("bench_gradient_cost", "data_gen_gradient.json"),
     "demc_rates/recipes.md": ("demc_recipes", "demc_rates/recipes.json"),
+    "demc_rates/level3/recipes.md": ("demc_recipes", "demc_rates/level3/recipes.json"),
     "data_gen.md": ("bench_data_gen", "data_gen.json"),
     "scale_out.md": ("bench_scale_out", "scale_out.json"),
     "lbf_timing.md": ("lbf_timing", "lbf_timing.json"),
