@@ -59,21 +59,26 @@ def frame_levels(out: np.ndarray, ref: np.ndarray, surface: np.ndarray | None = 
     return [float(np.median(bo[..., c][lit] / np.maximum(br[..., c][lit], 1e-12))) for c in range(3)]
 
 
-def scene_masks(shot_dir: Path, name: str) -> dict:
-    """``surface`` (pixels whose 16 rays all hit a non-emitting shape, with no emitter ray in their
-    `BOX` square) and ``emitter`` (pixels whose rays all hit an area emitter, eroded by one pixel) of
-    render ``name`` in ``shot_dir``, from its scene rebuilt by data_gen (module docstring)."""
-    from scipy.ndimage import maximum_filter, minimum_filter
-
-    from data_gen.render import first_hits
-    from data_gen.scenes import scene_from_label
-
+def scene_of(shot_dir: Path, name: str) -> tuple[str, int, int]:
+    """``(scene label, width, height)`` of render ``name`` in ``shot_dir``, from its shot.json record."""
     record = shot_dir / "shot.json"
     try:
         key = json.loads(record.read_text())["files"][name]["key"]
     except (OSError, KeyError, ValueError) as exc:
         raise SystemExit(f"{record}: no render record for {name} ({exc!r}); measure without masks: --masks none")
-    hits = first_hits(scene_from_label(key["scene"], width=int(key["width"]), height=int(key["height"])))
+    return key["scene"], int(key["width"]), int(key["height"])
+
+
+def scene_masks(label: str, width: int, height: int) -> dict:
+    """``surface`` (pixels whose 16 rays all hit a non-emitting shape, with no emitter ray in their
+    `BOX` square) and ``emitter`` (pixels whose rays all hit an area emitter, eroded by one pixel) of
+    the scene ``label`` at ``width`` x ``height``, rebuilt by data_gen (module docstring)."""
+    from scipy.ndimage import maximum_filter, minimum_filter
+
+    from data_gen.render import first_hits
+    from data_gen.scenes import scene_from_label
+
+    hits = first_hits(scene_from_label(label, width=width, height=height))
     near = maximum_filter(hits["emitter"] > 0, size=BOX, mode="nearest")
     return {"surface": (hits["surface"] >= 1.0) & ~near,
             "emitter": minimum_filter(hits["emitter"] >= 1.0, size=3, mode="constant")}
@@ -116,9 +121,9 @@ def measure(methods: list[str], folders: list[str], spps: list[int], masks: str 
     def masks_of(render) -> dict | None:
         if masks == "none":
             return None
-        k = (render.path.parent, render.path.name)
+        k = scene_of(render.path.parent, render.path.name)  # every rate of a shot: one scene, one mask
         if k not in cache:
-            cache[k] = scene_masks(render.path.parent, render.path.name)
+            cache[k] = scene_masks(*k)
         return cache[k]
 
     for entry in methods:

@@ -4,8 +4,8 @@ from scratch, and the loss's per-pixel scale as a fine-tune of the shipped weigh
     python experiments/demc_recipes.py eq3 --steps 250 --seeds 0,1 --lr 5e-4 --out runs/demc_eq3
     python experiments/demc_recipes.py finetune --loss-scale output --steps 700 --out runs/demc_scale
     python experiments/demc_recipes.py finetune --level-weight 4 --steps 700 --out runs/demc_level
-    python experiments/demc_recipes.py finetune --level-weight 16 --level-pool 16 --level-scale output \
-        --steps 500 --validate-every 50 --out runs/demc_level3
+    python experiments/demc_recipes.py finetune --level-weight 4 --level-pool 8 --level-scale output \
+        --steps 400 --validate-every 50 --out runs/demc_level3
 
 Both train on ``--data`` (default ``runs/demc_rates_data``: the scene library's training scenes and
 40 procedural ``mixed`` scenes at 1/4/16/64 spp, jaxdenoise/weights/demc/README.md) and validate on

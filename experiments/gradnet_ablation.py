@@ -32,6 +32,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from jaxdenoise.buffers import PRIMALS  # noqa: E402
 from jaxdenoise.fsutil import write_json  # noqa: E402
 from jaxdenoise.methods import get, gradnet  # noqa: E402
 from jaxdenoise.train import TrainConfig, load_data, train  # noqa: E402
@@ -75,7 +76,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--seeds", help="comma-separated seeds, every variant trained once per seed (default: --seed)")
     ap.add_argument("--runs", default="runs/gradnet_ablation")
-    ap.add_argument("--train-primal", default="gpt", choices=("base", "gpt"),
+    ap.add_argument("--train-primal", default="gpt", choices=PRIMALS,
                     help="what I_b of the training renders is (gradnet.Config.train_primal; base: data/gradnet_train)")
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)

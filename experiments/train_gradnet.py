@@ -34,6 +34,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from common import tar_folders  # noqa: E402
+from jaxdenoise.buffers import PRIMALS  # noqa: E402
 
 PAPER_EPOCH_PATCHES = 11_785  # Sec. 5.1: 13,500 patches of 256 x 256, 846 illegal, 869 held out for testing
 
@@ -129,7 +130,7 @@ def main() -> None:
     r.add_argument("--init", default=None, help="fine-tune these weights (a folder); Eq. 14's lambda is then "
                                                 "held at its cap from step 0")
     for q in (p, r):
-        q.add_argument("--train-primal", default="gpt", choices=("base", "gpt"),
+        q.add_argument("--train-primal", default="gpt", choices=PRIMALS,
                        help="what I_b of the training renders is (gradnet.Config.train_primal; base: data/gradnet_train)")
     args = ap.parse_args()
     {"prepare": prepare, "run": run}[args.cmd](args)
