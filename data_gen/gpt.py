@@ -47,6 +47,14 @@ base carries ``beta = f_x / p_x``; each offset carries ``beta_y = J f_y / p_x`` 
 ratio ``R = J p_y / p_x`` of its prefix. Russian roulette (the base's decision) scales both paths'
 densities alike, so ``R`` is unchanged.
 
+Cost: Dr.Jit's LLVM backend runs every operation of a vectorized loop for every lane, masked or not,
+but a symbolic conditional (``dr.if_stmt``) only for the SIMD packets that hold a lane taking it. Each
+offset's update is therefore traced three times, in nested conditionals on its state: all of the
+shift for offsets not yet connected, the shared vertex's BSDF for those connected one vertex ago, and
+the base path's own values for those sharing its tail (or dead), which after the first bounces are
+most of them. The three traces are one function with the other states' masks set to a literal False
+(`_state_masks`); ``branch_states=False`` traces it once for every state, bit-identical (tested).
+
 Supported BSDFs: what the procedural families and our XML scenes use (diffuse, rough and smooth
 conductor, rough and smooth plastic, rough and smooth dielectric). A half-vector copy through a rough
 *refraction* (a rough dielectric below the roughness threshold) is not implemented and counts as a
@@ -67,6 +75,7 @@ NEIGHBOURS: tuple[tuple[int, int], ...] = ((1, 0), (0, 1), (-1, 0), (0, -1))
 
 # Offset path states (Kettunen 2015 Sec. 5.2; Mitsuba 0.5 gpt's RayConnection).
 NOT_CONNECTED, RECENTLY_CONNECTED, CONNECTED, DEAD = 0, 1, 2, 3
+_ALL_STATES = (NOT_CONNECTED, RECENTLY_CONNECTED, CONNECTED)
 # Per-lane event flags, one bit per neighbour and kind.
 RECONNECTED, HALF_VECTOR, FAILED = 1, 2, 4
 
@@ -107,6 +116,16 @@ def _reconnection_jacobian(cos_y, dist2_y, cos_x, dist2_x):
     return dr.abs(cos_y) * dist2_x / dr.maximum(dr.abs(cos_x) * dist2_y, _EPS)
 
 
+def _state_masks(active, st, states):
+    """The masks ``(connected, recently connected, not connected)`` of the lanes in ``active`` whose
+    offset is in that state; a state not in ``states`` gives a literal False, so Dr.Jit drops the code
+    only it needs, and such a lane is handled as DEAD (a caller traces the code of a lane's actual state)."""
+    import mitsuba as mi
+
+    return tuple(active & (st == v) if v in states else mi.Bool(False)
+                 for v in (CONNECTED, RECENTLY_CONNECTED, NOT_CONNECTED))
+
+
 def _pair_weight(base_terms, offset_terms):
     """Power-heuristic weight of a base-path contribution, its densities divided by its own:
     ``base_terms`` = 1 + (other base technique)^2, ``offset_terms`` = the two offset techniques'
@@ -130,7 +149,8 @@ def _direction_sample(ds, *, p, d, dist):
 
 def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, settings: PathSettings,
               shift: ShiftSettings = ShiftSettings(), roughness: RoughnessLookup | None = None,
-              separate_emission: bool = True, record: frozenset[str] = frozenset()) -> dict:
+              separate_emission: bool = True, record: frozenset[str] = frozenset(),
+              branch_states: bool = True) -> dict:
     """Trace one base path per lane of ``ray`` and shift it to the four ``offset_rays`` (camera rays
     through the `NEIGHBOURS`, same camera samples; ``*_weight`` the camera weights).
 
@@ -213,6 +233,22 @@ def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, setti
                  active=valid0 & (settings.max_depth > 1), offs=offs, feats=feats, found=Bool(False),
                  pending=valid0 & (settings.max_depth <= 1))
 
+    def by_state(st, active, fn, args):
+        # ``fn(*args, states)`` traced once per group of offset states, each group in a symbolic
+        # conditional: Dr.Jit's LLVM backend runs a branch only for the SIMD packets that hold a lane
+        # taking it, so the reconnection and half-vector code runs only where an offset has not yet
+        # connected (cost: docs/methods/gradient_domain.md). ``branch_states=False``: one trace of
+        # every state (the reference the branches are tested against, bit for bit).
+        if not branch_states:
+            return fn(*args, _ALL_STATES)
+        return dr.if_stmt(
+            args=args, cond=active & (st == NOT_CONNECTED), true_fn=lambda *a: fn(*a, _ALL_STATES),
+            false_fn=lambda *a: dr.if_stmt(
+                args=a, cond=active & (st == RECENTLY_CONNECTED),
+                true_fn=lambda *b: fn(*b, (RECENTLY_CONNECTED,)), false_fn=lambda *b: fn(*b, (CONNECTED,)),
+                label="data_gen.gpt.recent"),
+            label="data_gen.gpt.shift")
+
     def body(s, smp):
         ray, si, depth, active = s["ray"], s["si"], s["depth"], s["active"]
         L, beta = s["L"], s["beta"]
@@ -241,9 +277,12 @@ def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, setti
         den_x = 1.0 + dr.square(b_x / a_x)
         c_x = dr.select(reaches, beta * bsdf_val * em_weight, 0.0)
         rough_nee = roughness(bsdf, ev) > thr
-        for k, o in enumerate(offs):
+
+        def nee_shift(o, g, pm, ps, states):
+            # An offset's share of the light sample; ``states``: the offset states the traced code handles
+            # (a lane in another one is treated as DEAD: see `_state_masks`).
             st, R = o["st"], o["R"]
-            conn, recent, notc = ev & (st == CONNECTED), ev & (st == RECENTLY_CONNECTED), ev & (st == NOT_CONNECTED)
+            conn, recent, notc = _state_masks(ev, st, states)
             # Recently connected: the shared vertex seen from the offset's previous vertex.
             wi_r, _ = _norm_dir(o["yp"] - si.p)
             si_r = mi.SurfaceInteraction3f(si)
@@ -284,9 +323,11 @@ def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, setti
                                     dr.select(notc, 0.0, dr.rcp(den_x)))))
             w = dr.select(ev, w, 0.0)
             c_y = dr.select(ev & (st != DEAD), c_y, 0.0)
-            o["g"] = o["g"] + w * (c_y - c_x)
-            o["pm"] = o["pm"] + w * c_x
-            o["ps"] = o["ps"] + w * c_y
+            return g + w * (c_y - c_x), pm + w * c_x, ps + w * c_y
+
+        for o in offs:
+            o["g"], o["pm"], o["ps"] = by_state(
+                o["st"], ev, lambda g, pm, ps, states, o=o: nee_shift(o, g, pm, ps, states), (o["g"], o["pm"], o["ps"]))
 
         # ---------------- BSDF sampling and Russian roulette (as trace) ----------------
         s1 = smp.next_1d(active)
@@ -322,9 +363,11 @@ def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, setti
         rough_next = n_inf | rough(si_n.bsdf(), delta_s, cont & valid_n)
         refl = dr.sign(mi.Frame3f.cos_theta(si.wi)) == dr.sign(mi.Frame3f.cos_theta(bs.wo))
         s1_forced = dr.select(has(bs.sampled_type, mi.BSDFFlags.DeltaTransmission), _ONE_MINUS, 0.0)
-        for k, o in enumerate(offs):
+
+        def bsdf_shift(k, o, states):
+            # An offset's next vertex (as nee_shift: ``states`` those the traced code handles).
             st, R, beta_y = o["st"], o["R"], o["beta"]
-            conn, recent, notc = cont & (st == CONNECTED), cont & (st == RECENTLY_CONNECTED), cont & (st == NOT_CONNECTED)
+            conn, recent, notc = _state_masks(cont, st, states)
             fail = Bool(False)
             end = Bool(False)
             # -- recently connected: evaluate the shared vertex with the offset's incoming direction.
@@ -403,20 +446,19 @@ def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, setti
                                     dr.select(hv_ok, _pair_weight(1.0, dr.square(R_n)),
                                               dr.select(hv, 1.0, dr.rcp(den_x))))))
             w = dr.select(cont, w, 0.0)
-            o["g"] = o["g"] + w * (c_y - c_x)
-            o["pm"] = o["pm"] + w * c_x
-            o["ps"] = o["ps"] + w * c_y
-            o["beta"] = beta_y
-            o["R"] = R_n
             new_st = dr.select(conn | recent_ok, UInt32(CONNECTED),
                                dr.select(recon_ok, UInt32(RECENTLY_CONNECTED),
                                          dr.select(hv_ok & ~end, UInt32(NOT_CONNECTED), UInt32(DEAD))))
-            o["st"] = dr.select(cont, new_st, st)
-            o["yp"] = dr.select(recon_ok, si_y.p, o["yp"])
-            o["si"] = dr.select(hv_ok, si_yn, si_y)
-            o["fl"] = (o["fl"] | dr.select(recon_ok, UInt32(RECONNECTED << (3 * k)), 0)
-                       | dr.select(hv_ok, UInt32(HALF_VECTOR << (3 * k)), 0)
-                       | dr.select(cont & fail, UInt32(FAILED << (3 * k)), 0))
+            return dict(g=o["g"] + w * (c_y - c_x), pm=o["pm"] + w * c_x, ps=o["ps"] + w * c_y, beta=beta_y, R=R_n,
+                        st=dr.select(cont, new_st, st), yp=dr.select(recon_ok, si_y.p, o["yp"]),
+                        si=dr.select(hv_ok, si_yn, si_y),
+                        fl=(o["fl"] | dr.select(recon_ok, UInt32(RECONNECTED << (3 * k)), 0)
+                            | dr.select(hv_ok, UInt32(HALF_VECTOR << (3 * k)), 0)
+                            | dr.select(cont & fail, UInt32(FAILED << (3 * k)), 0)))
+
+        for k, o in enumerate(offs):
+            step = {f: o[f] for f in ("g", "pm", "ps", "beta", "R", "st", "yp", "si", "fl")}
+            o.update(by_state(o["st"], cont, lambda step, states, k=k: bsdf_shift(k, step, states), (step,)))
 
         f = feature_vertex(s["feats"], si, bsdf, at_feat, reaches, roughness)
         if "albedo2" in f:  # the vertex after the feature vertex, where the path reaches one

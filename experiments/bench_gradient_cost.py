@@ -21,6 +21,7 @@ Writes ``--out`` (the page; `page`: the page from the JSON alone) and the JSON b
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import platform
@@ -28,6 +29,7 @@ import statistics
 import sys
 import time
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 
@@ -35,6 +37,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from data_gen import gradient  # noqa: E402
+from data_gen.gpt import trace_gpt  # noqa: E402
 from data_gen.gradient import SHIFTS, render_gradients  # noqa: E402
 from data_gen.integrator import FEATURES, PathSettings  # noqa: E402
 from data_gen.mitsuba_setup import setup_mitsuba  # noqa: E402
@@ -66,14 +70,19 @@ def scenes(size: int) -> dict:
     return out
 
 
-def median_time(fn, runs: int) -> tuple[float, list[float]]:
-    fn()  # warm-up: kernel compilation
-    ts = []
-    for _ in range(runs):
-        t0 = time.perf_counter()
+def interleaved_times(fns: dict, runs: int) -> dict:
+    """``{name: (median seconds, the runs)}`` of each callable: one warm-up each (kernel compilation),
+    then ``runs`` rounds that call every one once, in turn, so a drift of the machine's speed during
+    the measurement reaches every ratio alike."""
+    for fn in fns.values():
         fn()
-        ts.append(time.perf_counter() - t0)
-    return statistics.median(ts), ts
+    ts = {k: [] for k in fns}
+    for _ in range(runs):
+        for k, fn in fns.items():
+            t0 = time.perf_counter()
+            fn()
+            ts[k].append(time.perf_counter() - t0)
+    return {k: (statistics.median(v), v) for k, v in ts.items()}
 
 
 def main(argv=None) -> int:
@@ -103,14 +112,29 @@ def main(argv=None) -> int:
     for name, d in todo.items():
         scene = load_scene(d)
         ref = render_buffers(scene, spp=args.ref_spp, seed=987654, settings=settings)["color"].astype(np.float64)
-        t_plain, ts_plain = median_time(lambda: render_buffers(scene, spp=args.spp, seed=1, settings=settings), args.runs)
-        # the frame a dataset writes: every feature with the colour (issue 37 item 3's measure)
-        t_buf, ts_buf = median_time(lambda: render_buffers(scene, spp=args.spp, seed=1, settings=settings,
-                                                           record=FEATURES), args.runs)
+        # The frame a dataset writes: every feature with the colour (issue 37 item 3's measure). For the
+        # reconnection shift also the tracer before 0.9.3, one trace of every offset state run by every lane
+        # (same outputs, bit for bit); data_gen.gradient calls trace_gpt by that name, so it is swapped here.
+        single = functools.partial(trace_gpt, branch_states=False)
+
+        def single_trace_frame():
+            with mock.patch.object(gradient, "trace_gpt", single):
+                return render_gradients(scene, spp=args.spp, seed=1, shift="reconnect", record=FEATURES)
+
+        fns = {"plain": lambda: render_buffers(scene, spp=args.spp, seed=1, settings=settings),
+               "buffers": lambda: render_buffers(scene, spp=args.spp, seed=1, settings=settings, record=FEATURES)}
         for shift in SHIFTS:
-            t_grad, ts_grad = median_time(lambda: render_gradients(scene, spp=args.spp, seed=1, shift=shift), args.runs)
-            t_frame, ts_frame = median_time(lambda: render_gradients(scene, spp=args.spp, seed=1, shift=shift,
-                                                                     record=FEATURES), args.runs)
+            fns[f"gradient_{shift}"] = functools.partial(render_gradients, scene, spp=args.spp, seed=1, shift=shift)
+            fns[f"frame_{shift}"] = functools.partial(render_gradients, scene, spp=args.spp, seed=1, shift=shift,
+                                                      record=FEATURES)
+        fns["single_trace_frame_reconnect"] = single_trace_frame
+        times = interleaved_times(fns, args.runs)
+        t_plain, ts_plain = times["plain"]
+        t_buf, ts_buf = times["buffers"]
+        for shift in SHIFTS:
+            t_grad, ts_grad = times[f"gradient_{shift}"]
+            t_frame, ts_frame = times[f"frame_{shift}"]
+            t_single, ts_single = times.get(f"single_trace_frame_{shift}", (None, None))
             ratio = t_grad / t_plain
             # the variance of gradients of the whole image (the directly seen emission included), which is
             # what the difference of two independent renders estimates
@@ -126,6 +150,8 @@ def main(argv=None) -> int:
                 "plain_runs_s": ts_plain, "gradient_runs_s": ts_grad,
                 "buffers_s": t_buf, "frame_s": t_frame, "buffers_runs_s": ts_buf, "frame_runs_s": ts_frame,
                 "frame_ratio": t_frame / t_buf, "two_pass_ratio": (t_buf + t_grad) / t_buf,
+                "single_trace_frame_s": t_single, "single_trace_frame_runs_s": ts_single,
+                "single_trace_frame_ratio": None if t_single is None else t_single / t_buf,
                 "var_ratio_dx": float(vx.sum() / ix.sum()), "var_ratio_dy": float(vy.sum() / iy.sum()),
                 "median_pixel_var_ratio_dx": float(np.median(vx[mx] / ix[mx])),
                 "median_pixel_var_ratio_dy": float(np.median(vy[my] / iy[my])),
@@ -166,8 +192,9 @@ def page(res: dict) -> str:
     lines = [
         "# Gradient-domain buffers: replay vs reconnection shift, cost, variance, reconstruction",
         "",
-        "| scene | shift | frame ratio (one pass) | frame ratio (two passes) | time ratio | var ratio dx / dy | median px ratio dx / dy | reconnected | half-vector | failed |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| scene | shift | frame ratio (one pass) | one trace of every state (before 0.9.3) | frame ratio (two passes) "
+        "| time ratio | var ratio dx / dy | median px ratio dx / dy | reconnected | half-vector | failed |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         if r["shift"] == "replay" and r["shift_stats"] is None:
@@ -175,8 +202,9 @@ def page(res: dict) -> str:
         else:
             st = r["shift_stats"]
             fr = f"{st['reconnected']:.3f} | {st['half_vector']:.3f} | {st['failed']:.3f}"
+        single = "-" if r["single_trace_frame_ratio"] is None else f"{r['single_trace_frame_ratio']:.2f}"
         lines.append(
-            f"| {r['scene']:s} | {r['shift']:s} | {r['frame_ratio']:.2f} | {r['two_pass_ratio']:.2f} | "
+            f"| {r['scene']:s} | {r['shift']:s} | {r['frame_ratio']:.2f} | {single} | {r['two_pass_ratio']:.2f} | "
             f"{r['time_ratio']:.2f} | {r['var_ratio_dx']:.3f} / {r['var_ratio_dy']:.3f} | "
             f"{r['median_pixel_var_ratio_dx']:.4f} / {r['median_pixel_var_ratio_dy']:.4f} | {fr} |")
     lines += [
@@ -187,6 +215,8 @@ def page(res: dict) -> str:
         "whose base paths record the colour and the features (bit-identical to `render_buffers`'; the API "
         "since 0.8.1, data_gen's shots since 0.8.2); two passes: `render_buffers` then `render_gradients` "
         "(what data_gen's shots rendered before 0.8.2), "
+        "and the one pass with the tracer of 0.9.2 and before (`trace_gpt(branch_states=False)`: one trace of "
+        "every offset state run by every lane; same outputs bit for bit), "
         "measured in the same run. Time ratio = `render_gradients` (no features; replay: base + 2 replayed "
         "paths per sample; reconnect: base + 4 offset paths) / `render_buffers` (colour only) at equal spp.",
         "Variance ratio = sum(dx_var) / sum(var_a[x] + var_b[x+1]) (two independent plain renders; dx, dy "
@@ -225,7 +255,8 @@ def page(res: dict) -> str:
         "",
         f"Mitsuba variant `{res['variant']:s}`, {res['cpu_count']:d} CPU cores, {res['machine']:s}, load average at the end "
         f"{load[0]:.2f} / {load[1]:.2f} / {load[2]:.2f} (1/5/15 min); times are medians of {cfg['runs']:d} runs after a "
-        f"warm-up, in one process, at {cfg['size']:d}x{cfg['size']:d} and {cfg['spp']:d} spp.",
+        f"warm-up, in one process, at {cfg['size']:d}x{cfg['size']:d} and {cfg['spp']:d} spp, interleaved (each round "
+        "renders every timed variant once, in turn).",
         "",
     ]
     return "\n".join(lines)
