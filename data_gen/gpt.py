@@ -173,6 +173,11 @@ def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, setti
     ``record``: features of `data_gen.integrator.FEATURES` recorded along the base path, exactly as
     `data_gen.integrator.trace` records them for the same sampler and ray (same vertices, same values),
     returned under their names: a gradient frame's buffers need no separate plain render.
+
+    ``branch_states`` (True): each offset's update runs in symbolic conditionals on its state (module
+    docstring, "Cost"); False traces it once for every state and every lane, the tracer before 0.9.3,
+    with the same outputs bit for bit (the reference the branches are tested against; the bench's
+    "before" column).
     """
     import drjit as dr
     import mitsuba as mi
