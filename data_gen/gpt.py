@@ -462,8 +462,7 @@ def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, setti
                             | dr.select(cont & fail, UInt32(FAILED << (3 * k)), 0)))
 
         for k, o in enumerate(offs):
-            step = {f: o[f] for f in ("g", "pm", "ps", "beta", "R", "st", "yp", "si", "fl")}
-            o.update(by_state(o["st"], cont, lambda step, states, k=k: bsdf_shift(k, step, states), (step,)))
+            o.update(by_state(o["st"], cont, lambda step, states, k=k: bsdf_shift(k, step, states), (dict(o),)))
 
         f = feature_vertex(s["feats"], si, bsdf, at_feat, reaches, roughness)
         if "albedo2" in f:  # the vertex after the feature vertex, where the path reaches one
