@@ -1,8 +1,8 @@
 """JAX's persistent compilation cache, on by default for every program the library compiles.
 
 A second ``jaxdenoise demo``, ``bench`` or ``denoise`` on the same shapes, and a notebook re-run,
-then load compiled programs from disk instead of paying XLA's compile again (tracing and lowering
-still run: they are Python). One folder, shared by the API, the CLI and bench:
+then load compiled programs from disk instead of paying XLA's compile again. One folder, shared by
+the API, the CLI and bench:
 
 - ``$JAXDENOISE_CACHE_DIR`` when set (``off`` or an empty value: no cache);
 - else ``$XDG_CACHE_HOME/jaxdenoise/xla``, else ``~/.cache/jaxdenoise/xla``.
@@ -18,22 +18,48 @@ not written.
 
 `CacheCounter` counts JAX's own cache hit / miss events around a compile, so bench can report
 whether a program came from the cache.
+
+**Traced programs.** XLA's cache skips the compile, not JAX's tracing and lowering, which are Python
+and for the filters cost more than the compile itself (the demo's second run spent about 11 of its
+34 s tracing programs whose executables it then loaded). A method's inference program
+(`jaxdenoise.inference.Compiled`) is therefore traced through `jax.export` and kept in the same
+folder as ``jaxdenoise-program-<key>.bin`` (the serialized StableHLO; `store_program` /
+`load_program`); a later process on the same signature deserializes it instead of tracing. The key
+(`program_key`) holds everything a trace depends on: the method, its config, the tree structure,
+shapes and dtypes of its arguments (parameters included: weights are arguments, not constants), the
+digest of the library's source files (any edit makes new keys), the jax / jaxlib versions, the
+backend and the JAX settings that change a trace. Both calls, fresh or loaded, run the same program
+(``Exported.call``), so their outputs are bit-identical (tested); a file that cannot be read is
+ignored and replaced. What this cannot see is code changed at run time (a monkeypatched module
+attribute read while tracing); turn the cache off (``JAXDENOISE_CACHE_DIR=off``) for such
+experiments, as one would clear the in-process compile cache.
 """
 from __future__ import annotations
 
+import functools
+import hashlib
+import json
 import os
 import threading
 from pathlib import Path
+from typing import Any
 
 import jax
+import numpy as np
 
-__all__ = ["ENV", "MIN_COMPILE_SECONDS", "CacheCounter", "cache_dir", "enable", "status"]
+__all__ = ["ENV", "MIN_COMPILE_SECONDS", "CacheCounter", "cache_dir", "enable", "status", "program_key",
+           "load_program", "store_program"]
 
 ENV = "JAXDENOISE_CACHE_DIR"
 _OFF = {"", "off", "0", "none", "false"}
 MIN_COMPILE_SECONDS = 0.1
 _lock = threading.Lock()
 _state: dict = {"enabled": None, "dir": None}
+PROGRAM_FORMAT = 1  # bump when the key or the file layout changes
+# JAX settings that change what a trace produces (the others change how XLA compiles it, which
+# XLA's own cache key covers).
+_TRACE_SETTINGS = ("jax_enable_x64", "jax_default_matmul_precision", "jax_numpy_rank_promotion",
+                   "jax_numpy_dtype_promotion", "jax_default_prng_impl")
 
 
 def cache_dir() -> Path | None:
@@ -109,3 +135,71 @@ class CacheCounter:
     def __exit__(self, *exc) -> None:
         self.hits = self._counts["hits"] - self._start["hits"]
         self.misses = self._counts["misses"] - self._start["misses"]
+
+
+@functools.lru_cache(maxsize=1)
+def _source_digest() -> str:
+    """SHA-256 over the library's Python sources (relative path and bytes of every ``.py`` file)."""
+    root = Path(__file__).resolve().parent
+    h = hashlib.sha256()
+    for f in sorted(root.rglob("*.py")):
+        h.update(f.relative_to(root).as_posix().encode())
+        h.update(b"\0")
+        h.update(f.read_bytes())
+    return h.hexdigest()
+
+
+def _leaf_signature(x: Any) -> list:
+    if isinstance(x, (bool, int, float, complex)):  # a Python scalar: traced weakly typed
+        return [type(x).__name__]
+    return [list(np.shape(x)), np.dtype(x.dtype).str, bool(getattr(x, "weak_type", False))]
+
+
+def program_key(method: str, config: Any, tree: Any, leaves: list) -> str | None:
+    """The file key of a method's traced inference program for these arguments (``tree``, ``leaves``:
+    the flattened ``(params, buffers)``); ``None`` when the cache is off."""
+    if enable() is None:
+        return None
+    import jaxlib
+
+    parts = {"format": PROGRAM_FORMAT, "method": method, "config": repr(config), "tree": str(tree),
+             "leaves": [_leaf_signature(x) for x in leaves], "source": _source_digest(),
+             "jax": jax.__version__, "jaxlib": jaxlib.__version__, "backend": jax.default_backend(),
+             "settings": {k: str(getattr(jax.config, k, None)) for k in _TRACE_SETTINGS}}
+    return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()
+
+
+def _program_path(key: str) -> Path:
+    return Path(_state["dir"]) / f"jaxdenoise-program-{key}.bin"
+
+
+def load_program(key: str | None):
+    """The `jax.export.Exported` stored under ``key``, or ``None`` (no key, no file, or a file that
+    does not deserialize: it is then ignored and overwritten by the next store)."""
+    if key is None:
+        return None
+    path = _program_path(key)
+    try:
+        data = path.read_bytes()
+    except OSError:
+        return None
+    try:
+        return jax.export.deserialize(bytearray(data))
+    except Exception:  # a truncated or foreign file: trace again
+        return None
+
+
+def store_program(key: str | None, exported) -> bool:
+    """Write ``exported`` under ``key`` (temporary name, then rename); False when it could not be
+    (no key, a read-only folder, or no serializer: jax.export needs the ``flatbuffers`` package)."""
+    if key is None:
+        return False
+    from .fsutil import atomic_path
+
+    try:
+        data = exported.serialize()
+        with atomic_path(_program_path(key)) as tmp:
+            tmp.write_bytes(data)
+    except (OSError, ImportError):
+        return False
+    return True

@@ -72,17 +72,21 @@ def available_memory() -> int:
 
 @dataclasses.dataclass(frozen=True)
 class CompileInfo:
-    """What compiling one input signature cost (`Compiled.compile`): JAX's tracing (Python), the
-    lowering to StableHLO, XLA's compile (near 0 when the program came from the persistent cache),
-    where the executable came from (``"memory"``: compiled before in this process; ``"hit"`` /
-    ``"miss"``: the persistent cache, `jaxdenoise.compile_cache`; ``"off"``: no persistent cache),
-    and XLA's memory estimate (arguments + outputs + temporaries, bytes)."""
+    """What compiling one input signature cost (`Compiled.compile`): JAX's tracing (Python: the
+    method traced and lowered to StableHLO by `jax.export`, or that program read back from disk), the
+    lowering of the call that runs it, XLA's compile (near 0 when the executable came from the
+    persistent cache), where the executable came from (``"memory"``: compiled before in this
+    process; ``"hit"`` / ``"miss"``: XLA's persistent cache, `jaxdenoise.compile_cache`; ``"off"``:
+    no persistent cache), where the traced program came from (``program``: ``"hit"``, read back;
+    ``"miss"``, traced now and stored; ``"off"``; ``"memory"``) and XLA's memory estimate
+    (arguments + outputs + temporaries, bytes)."""
 
     trace_seconds: float
     lower_seconds: float
     compile_seconds: float
     cache: str
     xla_bytes: int | None
+    program: str = "off"
 
     @property
     def seconds(self) -> float:
@@ -95,36 +99,53 @@ class Compiled:
     program needs more than the available memory (arguments + outputs + temporaries, from
     ``compiled.memory_analysis()``) is refused with that estimate (a `MethodError`) instead of being
     killed by the operating system. ``compile(params, buffers)`` returns a `CompileInfo` (all zeros,
-    ``cache="memory"``, when the signature was compiled before); programs are kept in JAX's
-    persistent cache across processes (`jaxdenoise.compile_cache`)."""
+    ``cache="memory"``, when the signature was compiled before).
+
+    The program is traced through `jax.export` over the flattened ``(params, buffers)`` and run as
+    ``Exported.call``: the traced program (StableHLO) and the executable are both kept on disk
+    (`jaxdenoise.compile_cache`), so a later process on the same signature neither traces nor
+    compiles; a fresh trace and a loaded one run the same program, bit for bit."""
 
     def __init__(self, m: Method) -> None:
         from . import compile_cache
 
         compile_cache.enable()
         self.name = m.name
-        self._jit = jax.jit(lambda params, buffers: m.module.apply(params, buffers, m.config))
+        self._method = m
         self._cache: dict = {}
+        self._ran: set = set()
 
     @staticmethod
     def _key(params: Any, buffers: Any) -> tuple:
         leaves, tree = jax.tree_util.tree_flatten((params, buffers))
         return tree, tuple((np.shape(x), np.dtype(getattr(x, "dtype", type(x))).str) for x in leaves)
 
+    def _export(self, tree: Any, leaves: list):
+        m = self._method
+        flat = jax.jit(lambda *xs: m.module.apply(*jax.tree_util.tree_unflatten(tree, xs), m.config))
+        return jax.export.export(flat)(*leaves)
+
     def compile(self, params: Any, buffers: Any, *, check: bool = True) -> CompileInfo:
         """Compile this input signature (once) and return what it cost; ``check=False`` returns XLA's
         estimate of a program over the available memory instead of refusing it (`tiling.plan`)."""
         key = self._key(params, buffers)
         if key in self._cache:
-            return CompileInfo(0.0, 0.0, 0.0, "memory", self._cache[key][1])
+            return CompileInfo(0.0, 0.0, 0.0, "memory", self._cache[key][1], "memory")
         import time
 
-        from .compile_cache import CacheCounter, status
+        from .compile_cache import CacheCounter, load_program, program_key, status, store_program
 
+        leaves, tree = jax.tree_util.tree_flatten((params, buffers))
         t0 = time.perf_counter()
-        traced = self._jit.trace(params, buffers)
+        pkey = program_key(self.name, self._method.config, tree, leaves)
+        exported = load_program(pkey)
+        program = "off" if pkey is None else "hit"
+        if exported is None:
+            exported = self._export(tree, leaves)
+            if pkey is not None:
+                program = "miss" if store_program(pkey, exported) else "off"
         t1 = time.perf_counter()
-        lowered = traced.lower()
+        lowered = jax.jit(exported.call).trace(*leaves).lower()
         t2 = time.perf_counter()
         with CacheCounter() as counter:
             exe = lowered.compile()
@@ -140,13 +161,20 @@ class Compiled:
                               f"available; denoise it in tiles under a memory budget (jaxdenoise.denoise(..., "
                               f"max_memory_mb=N), CLI --max-memory-mb N), a smaller frame or crop, or free memory")
         self._cache[key] = (exe, need)
-        return CompileInfo(t1 - t0, t2 - t1, t3 - t2, cache, need)
+        return CompileInfo(t1 - t0, t2 - t1, t3 - t2, cache, need, program)
 
     def __call__(self, params: Any, buffers: Any) -> Any:
         key = self._key(params, buffers)
         if key not in self._cache:
             self.compile(params, buffers)
-        return self._cache[key][0](params, buffers)
+        out = self._cache[key][0](*jax.tree_util.tree_leaves((params, buffers)))
+        self._ran.add(key)
+        return out
+
+    def has_run(self, params: Any, buffers: Any) -> bool:
+        """Whether this input signature's program has already run in this process (bench's warm-up
+        is per program: a later frame of the same signature needs none)."""
+        return self._key(params, buffers) in self._ran
 
 
 @functools.lru_cache(maxsize=64)

@@ -1,6 +1,7 @@
 """JAX's persistent compilation cache (jaxdenoise.compile_cache): a second process on the same shapes
-loads its programs instead of compiling them, and gets bit-identical outputs; the folder is movable
-and can be turned off."""
+loads its programs (the traced program and the executable) instead of tracing and compiling them, and
+gets bit-identical outputs; a damaged program file is ignored and replaced; the folder is movable and
+can be turned off."""
 from __future__ import annotations
 
 import json
@@ -30,7 +31,8 @@ for name in ("gaussian", "poisson-l1"):
     fn = inference_fn(m)
     c = fn.compile(params, prepare(m, b))
     out[name] = np.asarray(fn(params, prepare(m, b))).tolist()
-    info[name] = {"cache": c.cache, "compile": c.compile_seconds, "trace": c.trace_seconds, "lower": c.lower_seconds}
+    info[name] = {"cache": c.cache, "program": c.program, "compile": c.compile_seconds, "trace": c.trace_seconds,
+                  "lower": c.lower_seconds}
 json.dump({"out": out, "info": info, "status": compile_cache.status()}, open(sys.argv[1], "w"))
 """
 
@@ -49,12 +51,49 @@ def test_second_process_loads_the_programs_and_gets_identical_outputs(tmp_path):
     assert first["status"] == {"enabled": True, "dir": str(cache)}
     assert {v["cache"] for v in first["info"].values()} == {"miss"}
     assert {v["cache"] for v in second["info"].values()} == {"hit"}
-    assert any(cache.iterdir())
+    # the traced programs: written by the first process, read back (not traced) by the second
+    assert {v["program"] for v in first["info"].values()} == {"miss"}
+    assert {v["program"] for v in second["info"].values()} == {"hit"}
+    programs = sorted(cache.glob("jaxdenoise-program-*.bin"))
+    assert len(programs) == 2
     for name in first["out"]:  # bit-identical: the same executable, loaded instead of compiled
         np.testing.assert_array_equal(np.array(second["out"][name]), np.array(first["out"][name]))
     # a hit skips XLA's compile (IRLS's 20 x 50 CG loop: about a second; loading it, milliseconds)
     assert second["info"]["poisson-l1"]["compile"] < 0.5 * first["info"]["poisson-l1"]["compile"]
+    # a damaged program file is ignored: that method is traced again, its file rewritten, same output
+    programs[0].write_bytes(b"not a program")
+    third = _run(tmp_path, cache, "third")
+    assert sorted(v["program"] for v in third["info"].values()) == ["hit", "miss"]
+    assert programs[0].read_bytes() != b"not a program"
+    for name in first["out"]:
+        np.testing.assert_array_equal(np.array(third["out"][name]), np.array(first["out"][name]))
     off = _run(tmp_path, "off", "off")
     assert off["status"] == {"enabled": False, "dir": None}
     assert {v["cache"] for v in off["info"].values()} == {"off"}
+    assert {v["program"] for v in off["info"].values()} == {"off"}
     np.testing.assert_array_equal(np.array(off["out"]["poisson-l1"]), np.array(first["out"]["poisson-l1"]))
+
+
+def test_a_program_key_changes_with_everything_a_trace_depends_on(monkeypatch):
+    """The traced-program key (compile_cache.program_key) tells apart the method, its config, the
+    arguments' tree, shapes and dtypes, and the library's sources; the same inputs give the same key."""
+    import jax
+
+    from jaxdenoise import compile_cache
+    from jaxdenoise.methods import get
+
+    cfg = get("gaussian").config
+    args = ({}, {"color": np.zeros((4, 5, 3), np.float32), "spp": 4.0})
+    leaves, tree = jax.tree_util.tree_flatten(args)
+    key = compile_cache.program_key("gaussian", cfg, tree, leaves)
+    assert key is not None and key == compile_cache.program_key("gaussian", cfg, tree, leaves)
+    other_leaves, other_tree = jax.tree_util.tree_flatten(({}, {"color": np.zeros((4, 6, 3), np.float32)}))
+    others = [
+        compile_cache.program_key("bilateral", cfg, tree, leaves),
+        compile_cache.program_key("gaussian", type(cfg)(**{**cfg.__dict__, "sigma": cfg.sigma * 2}), tree, leaves),
+        compile_cache.program_key("gaussian", cfg, tree, [leaves[0].astype(np.float16), leaves[1]]),
+        compile_cache.program_key("gaussian", cfg, other_tree, other_leaves),
+    ]
+    monkeypatch.setattr(compile_cache, "_source_digest", lambda: "an edited library")
+    others.append(compile_cache.program_key("gaussian", cfg, tree, leaves))
+    assert len({key, *others}) == 1 + len(others)
