@@ -22,9 +22,10 @@ whether a program came from the cache.
 **Traced programs.** XLA's cache skips the compile, not JAX's tracing and lowering, which are Python
 and for the filters cost more than the compile itself (the demo's second run spent about 11 of its
 34 s tracing programs whose executables it then loaded). A method's inference program
-(`jaxdenoise.inference.Compiled`) is therefore traced through `jax.export` and kept in the same
-folder as ``jaxdenoise-program-<key>.bin`` (the serialized StableHLO; `store_program` /
-`load_program`); a later process on the same signature deserializes it instead of tracing. The key
+(`jaxdenoise.inference.Compiled`) and the sequence driver's per-frame programs (`CachedJit`) are
+therefore traced through `jax.export` (`exported_program`) and kept in the same folder as
+``jaxdenoise-program-<key>.bin`` (the serialized StableHLO; `store_program` / `load_program`); a
+later process on the same signature deserializes it instead of tracing. The key
 (`program_key`) holds everything a trace depends on: the method, its config, the tree structure,
 shapes and dtypes of its arguments (parameters included: weights are arguments, not constants), the
 digest of the library's source files (any edit makes new keys), the jax / jaxlib versions, the
@@ -42,13 +43,13 @@ import json
 import os
 import threading
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import jax
 import numpy as np
 
-__all__ = ["ENV", "MIN_COMPILE_SECONDS", "CacheCounter", "cache_dir", "enable", "status", "program_key",
-           "load_program", "store_program"]
+__all__ = ["ENV", "MIN_COMPILE_SECONDS", "CacheCounter", "CachedJit", "cache_dir", "enable", "status",
+           "program_key", "load_program", "store_program", "exported_program", "signature"]
 
 ENV = "JAXDENOISE_CACHE_DIR"
 _OFF = {"", "off", "0", "none", "false"}
@@ -198,8 +199,54 @@ def store_program(key: str | None, exported) -> bool:
 
     try:
         data = exported.serialize()
+    except Exception:  # no flatbuffers, or an output pytree jax.export cannot serialize
+        return False
+    try:
         with atomic_path(_program_path(key)) as tmp:
             tmp.write_bytes(data)
-    except (OSError, ImportError):
+    except OSError:
         return False
     return True
+
+
+def exported_program(fn: Callable, name: str, config: Any, args: tuple) -> tuple[Any, str]:
+    """The traced program of ``fn(*args)``, taking the flattened ``args`` (`jax.export.Exported`),
+    and where it came from: ``"hit"`` (read back), ``"miss"`` (traced now and stored) or ``"off"``
+    (traced now, not stored: the cache is off or the program could not be written). ``name`` and
+    ``config`` say what ``fn`` is (with the arguments' signature, the program's key); ``fn`` must be
+    a function of ``args`` alone, everything else fixed by ``name`` and ``config``."""
+    leaves, tree = jax.tree_util.tree_flatten(args)
+    key = program_key(name, config, tree, leaves)
+    exported = load_program(key)
+    if exported is not None:
+        return exported, "hit"
+    flat = jax.jit(lambda *xs: fn(*jax.tree_util.tree_unflatten(tree, xs)))
+    exported = jax.export.export(flat)(*leaves)
+    return exported, ("miss" if store_program(key, exported) else "off")
+
+
+def signature(leaves: list) -> tuple:
+    """Shapes and dtypes of flattened arguments: what one compiled program is specialised to."""
+    return tuple((np.shape(x), np.dtype(getattr(x, "dtype", type(x))).str) for x in leaves)
+
+
+class CachedJit:
+    """``jax.jit(fn)`` whose programs come from `exported_program` (read back, or traced and stored)
+    and are compiled once per argument signature, in JAX's persistent cache like every program.
+    ``origins`` lists, in compile order, where each signature's traced program came from."""
+
+    def __init__(self, fn: Callable, name: str, config: Any) -> None:
+        enable()
+        self._fn, self._name, self._config = fn, name, config
+        self._exes: dict = {}
+        self.origins: list[str] = []
+
+    def __call__(self, *args: Any) -> Any:
+        leaves, tree = jax.tree_util.tree_flatten(args)
+        sig = (tree, signature(leaves))
+        exe = self._exes.get(sig)
+        if exe is None:
+            exported, origin = exported_program(self._fn, self._name, self._config, args)
+            exe = self._exes[sig] = jax.jit(exported.call).trace(*leaves).lower().compile()
+            self.origins.append(origin)
+        return exe(*leaves)

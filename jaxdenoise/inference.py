@@ -117,13 +117,10 @@ class Compiled:
 
     @staticmethod
     def _key(params: Any, buffers: Any) -> tuple:
-        leaves, tree = jax.tree_util.tree_flatten((params, buffers))
-        return tree, tuple((np.shape(x), np.dtype(getattr(x, "dtype", type(x))).str) for x in leaves)
+        from .compile_cache import signature
 
-    def _export(self, tree: Any, leaves: list):
-        m = self._method
-        flat = jax.jit(lambda *xs: m.module.apply(*jax.tree_util.tree_unflatten(tree, xs), m.config))
-        return jax.export.export(flat)(*leaves)
+        leaves, tree = jax.tree_util.tree_flatten((params, buffers))
+        return tree, signature(leaves)
 
     def compile(self, params: Any, buffers: Any, *, check: bool = True) -> CompileInfo:
         """Compile this input signature (once) and return what it cost; ``check=False`` returns XLA's
@@ -133,17 +130,13 @@ class Compiled:
             return CompileInfo(0.0, 0.0, 0.0, "memory", self._cache[key][1], "memory")
         import time
 
-        from .compile_cache import CacheCounter, load_program, program_key, status, store_program
+        from .compile_cache import CacheCounter, exported_program, status
 
-        leaves, tree = jax.tree_util.tree_flatten((params, buffers))
+        m = self._method
+        leaves = jax.tree_util.tree_leaves((params, buffers))
         t0 = time.perf_counter()
-        pkey = program_key(self.name, self._method.config, tree, leaves)
-        exported = load_program(pkey)
-        program = "off" if pkey is None else "hit"
-        if exported is None:
-            exported = self._export(tree, leaves)
-            if pkey is not None:
-                program = "miss" if store_program(pkey, exported) else "off"
+        exported, program = exported_program(lambda p, b: m.module.apply(p, b, m.config), f"{m.name}:apply", m.config,
+                                             (params, buffers))
         t1 = time.perf_counter()
         lowered = jax.jit(exported.call).trace(*leaves).lower()
         t2 = time.perf_counter()

@@ -37,21 +37,25 @@ __all__ = ["run", "run_all"]
 
 @functools.lru_cache(maxsize=32)
 def _jitted_step(module, config) -> Callable:
-    compile_cache.enable()
-    return jax.jit(lambda params, state, buffers: module.step(params, state, buffers, config))
+    return compile_cache.CachedJit(lambda params, state, buffers: module.step(params, state, buffers, config),
+                                   f"{module.__name__}.step", config)
 
 
 @functools.lru_cache(maxsize=32)
 def _jitted_prepare_frame(module, config) -> Callable:
-    compile_cache.enable()
-    return jax.jit(lambda params, buffers: module.prepare_frame(params, buffers, config))
+    return compile_cache.CachedJit(lambda params, buffers: module.prepare_frame(params, buffers, config),
+                                   f"{module.__name__}.prepare_frame", config)
 
 
-@functools.lru_cache(maxsize=32)
+@functools.lru_cache(maxsize=256)
+def _jitted_window_at(module, config, center: int) -> Callable:
+    return compile_cache.CachedJit(lambda params, prepared: module.apply_window(params, prepared, center, config),
+                                   f"{module.__name__}.apply_window@{center}", config)
+
+
 def _jitted_window(module, config) -> Callable:
-    compile_cache.enable()
-    return jax.jit(lambda params, prepared, center: module.apply_window(params, prepared, center, config),
-                   static_argnums=2)
+    """``(params, prepared, center)`` -> the window's output; one program per centre (a static index)."""
+    return lambda params, prepared, center: _jitted_window_at(module, config, int(center))(params, prepared)
 
 
 def run(m: Method, params: Any, frames: Iterable[Buffers], *,

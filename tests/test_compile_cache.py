@@ -33,7 +33,13 @@ for name in ("gaussian", "poisson-l1"):
     out[name] = np.asarray(fn(params, prepare(m, b))).tolist()
     info[name] = {"cache": c.cache, "program": c.program, "compile": c.compile_seconds, "trace": c.trace_seconds,
                   "lower": c.lower_seconds}
-json.dump({"out": out, "info": info, "status": compile_cache.status()}, open(sys.argv[1], "w"))
+# the sequence driver's programs (compile_cache.CachedJit): a pytree in and out, one per signature
+import jax.numpy as jnp
+toy = compile_cache.CachedJit(lambda x, s: {"y": jnp.cumsum(x * s[0], axis=0)}, "tests.toy", {"k": 1})
+y = toy(np.arange(12, dtype=np.float32).reshape(3, 4), (np.float32(2.0),))
+toy(np.ones((3, 4), np.float32), (np.float32(3.0),))  # the same signature: compiled once
+json.dump({"out": out, "info": info, "status": compile_cache.status(), "toy": np.asarray(y["y"]).tolist(),
+           "toy_origins": toy.origins}, open(sys.argv[1], "w"))
 """
 
 
@@ -54,8 +60,11 @@ def test_second_process_loads_the_programs_and_gets_identical_outputs(tmp_path):
     # the traced programs: written by the first process, read back (not traced) by the second
     assert {v["program"] for v in first["info"].values()} == {"miss"}
     assert {v["program"] for v in second["info"].values()} == {"hit"}
+    assert first["toy_origins"] == ["miss"] and second["toy_origins"] == ["hit"]
+    np.testing.assert_array_equal(np.array(second["toy"]), np.array(first["toy"]))
+    np.testing.assert_array_equal(np.array(first["toy"]), 2 * np.cumsum(np.arange(12).reshape(3, 4), axis=0))
     programs = sorted(cache.glob("jaxdenoise-program-*.bin"))
-    assert len(programs) == 2
+    assert len(programs) == 3
     for name in first["out"]:  # bit-identical: the same executable, loaded instead of compiled
         np.testing.assert_array_equal(np.array(second["out"][name]), np.array(first["out"][name]))
     # a hit skips XLA's compile (IRLS's 20 x 50 CG loop: about a second; loading it, milliseconds)
@@ -63,14 +72,14 @@ def test_second_process_loads_the_programs_and_gets_identical_outputs(tmp_path):
     # a damaged program file is ignored: that method is traced again, its file rewritten, same output
     programs[0].write_bytes(b"not a program")
     third = _run(tmp_path, cache, "third")
-    assert sorted(v["program"] for v in third["info"].values()) == ["hit", "miss"]
+    assert sorted([v["program"] for v in third["info"].values()] + third["toy_origins"]) == ["hit", "hit", "miss"]
     assert programs[0].read_bytes() != b"not a program"
     for name in first["out"]:
         np.testing.assert_array_equal(np.array(third["out"][name]), np.array(first["out"][name]))
     off = _run(tmp_path, "off", "off")
     assert off["status"] == {"enabled": False, "dir": None}
     assert {v["cache"] for v in off["info"].values()} == {"off"}
-    assert {v["program"] for v in off["info"].values()} == {"off"}
+    assert {v["program"] for v in off["info"].values()} == {"off"} and off["toy_origins"] == ["off"]
     np.testing.assert_array_equal(np.array(off["out"]["poisson-l1"]), np.array(first["out"]["poisson-l1"]))
 
 
