@@ -7,7 +7,11 @@ the last one giving the output) against the input-skip decoder the shipped netwo
 paper's learning rate (1e-4) and at ours (1e-3, gradient norm clipped to 1) (docs/methods/gradnet.md).
 ``--study readings`` (issue 35 item 2): the residual block with an LReLU after the sum (ours) against
 Fig. 4's one LReLU per block, and Eq. 10's w_ij on the compressed base against w_ij on I_b in HDR
-(the equation writes no T there); ``--seeds`` repeats every variant.
+(the equation writes no T there); ``--seeds`` repeats every variant. ``--study pixels`` (issue 35
+item 4): the pixels a step sees against the learning rate, at equal wall time (``--seconds`` per
+variant, compile and validations included): our 8 crops of 64x64 at 1e-3 with clipping; 4x the
+pixels per step as 8 crops of 128x128, at 1e-3 with clipping and at the paper's 1e-4; and 4x as 32
+crops of 64x64 at the paper's 1e-4 (Sec. 5.2: 32 patches of 256x256 at 1e-4).
 Every variant trains with the same code, data, seed and steps (`jaxdenoise.train.train`), validated
 on the same frames every ``--validate-every`` steps; the schedule is compressed to the budget (an
 epoch of ``--epoch-patches`` patches, so that Eq. 14's lambda is on for most of the run). Writes the
@@ -21,6 +25,9 @@ curves and the final scores as JSON and a plot.
         --steps 1000 --validate-every 200 --out docs/results/gradnet_decoder
     python experiments/gradnet_ablation.py --study readings --data data/gradnet_train_gpt --val data/gradnet_val_gpt \
         --steps 3000 --epoch-patches 256 --validate-every 500 --seeds 0,1 --out docs/results/gradnet_readings
+    python experiments/gradnet_ablation.py --study pixels --data data/gradnet_train_gpt --val data/gradnet_val_gpt \
+        --val-spps 16,64,256 --seconds 600 --steps 100000 --epoch-patches 512 --validate-every 0 \
+        --out docs/results/gradnet_pixels
 """
 from __future__ import annotations
 
@@ -54,6 +61,12 @@ STUDIES = {
         "one LReLU per block (Fig. 4), w_ij on T(I_b)": ({"res_act_after_sum": False}, {}),
         "block LReLU after the sum, w_ij on I_b (Eq. 10 literal)": ({"weights_domain": "hdr"}, {}),
     },
+    "pixels": {  # issue 35 item 4, at equal wall time (--seconds)
+        "8 x 64^2 a step, lr 1e-3 + clip (ours)": ({}, {}),
+        "8 x 128^2 a step, lr 1e-3 + clip": ({"train_crop": 128}, {}),
+        "8 x 128^2 a step, lr 1e-4 (the paper's)": ({"train_crop": 128}, PAPER_LR),
+        "32 x 64^2 a step, lr 1e-4 (the paper's)": ({"train_batch": 32}, PAPER_LR),
+    },
     "decoder": {
         # L_data + L_grad only: the question is how fast each decoder leaves the base image
         "first decoder, lr 1e-4": ({"input_skip": False, "first_order": False}, PAPER_LR),
@@ -73,6 +86,7 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=1500)
     ap.add_argument("--epoch-patches", type=int, default=128)
     ap.add_argument("--validate-every", type=int, default=250)
+    ap.add_argument("--seconds", type=float, help="wall-time budget of every variant (TrainConfig.time_limit)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--seeds", help="comma-separated seeds, every variant trained once per seed (default: --seed)")
     ap.add_argument("--runs", default="runs/gradnet_ablation")
@@ -95,9 +109,11 @@ def main(argv=None) -> int:
             s = train(method, dataset, folder, TrainConfig.for_method(
                 method, steps=args.steps, seed=seed, val_data=args.val,
                 val_spps=[int(v) for v in args.val_spps.split(",")], validate_every=args.validate_every, resume=True,
-                progress=False, **train_over))
+                progress=False, time_limit=args.seconds, **train_over))
+            cfg_m = method.config
             results[name] = {"variant": variant, "seed": seed, "config": over, "train": train_over,
-                             "validation": s["validation"], "best": s["best"],
+                             "validation": s["validation"], "best": s["best"], "steps": s["steps_done"],
+                             "pixels_per_step": cfg_m.train_batch * cfg_m.train_crop ** 2,
                              "seconds": time.perf_counter() - t0, "folder": str(folder)}
             print(name, s["line"], flush=True)
     out = Path(args.out)

@@ -31,7 +31,9 @@ shapes and dtypes of its arguments (parameters included: weights are arguments, 
 digest of the library's source files (any edit makes new keys), the jax / jaxlib versions, the
 backend and the JAX settings that change a trace. Both calls, fresh or loaded, run the same program
 (``Exported.call``), so their outputs are bit-identical (tested); a file that cannot be read is
-ignored and replaced. What this cannot see is code changed at run time (a monkeypatched module
+ignored and replaced. Only the library's own modules' programs are kept: a method registered from a
+user's module (`jaxdenoise.methods.register`) is traced in every process, since the digest cannot see
+edits to it. What the key cannot see either is code changed at run time (a monkeypatched module
 attribute read while tracing); turn the cache off (``JAXDENOISE_CACHE_DIR=off``) for such
 experiments, as one would clear the in-process compile cache.
 """
@@ -156,14 +158,17 @@ def _leaf_signature(x: Any) -> list:
     return [list(np.shape(x)), np.dtype(x.dtype).str, bool(getattr(x, "weak_type", False))]
 
 
-def program_key(method: str, config: Any, tree: Any, leaves: list) -> str | None:
-    """The file key of a method's traced inference program for these arguments (``tree``, ``leaves``:
-    the flattened ``(params, buffers)``); ``None`` when the cache is off."""
-    if enable() is None:
+def program_key(name: str, config: Any, tree: Any, leaves: list, *, module: str) -> str | None:
+    """The file key of the traced program ``name`` (e.g. a method's ``apply``) of ``module`` with
+    ``config`` for these arguments (``tree``, ``leaves``: the flattened arguments); ``None`` when the
+    cache is off, or when ``module`` is not part of this library: a method registered from the
+    user's own module is traced in every process, since the key's source digest cannot see edits
+    to that module."""
+    if enable() is None or not module.startswith(__package__ + "."):
         return None
     import jaxlib
 
-    parts = {"format": PROGRAM_FORMAT, "method": method, "config": repr(config), "tree": str(tree),
+    parts = {"format": PROGRAM_FORMAT, "module": module, "name": name, "config": repr(config), "tree": str(tree),
              "leaves": [_leaf_signature(x) for x in leaves], "source": _source_digest(),
              "jax": jax.__version__, "jaxlib": jaxlib.__version__, "backend": jax.default_backend(),
              "settings": {k: str(getattr(jax.config, k, None)) for k in _TRACE_SETTINGS}}
@@ -209,14 +214,15 @@ def store_program(key: str | None, exported) -> bool:
     return True
 
 
-def exported_program(fn: Callable, name: str, config: Any, args: tuple) -> tuple[Any, str]:
+def exported_program(fn: Callable, name: str, config: Any, args: tuple, *, module: str) -> tuple[Any, str]:
     """The traced program of ``fn(*args)``, taking the flattened ``args`` (`jax.export.Exported`),
     and where it came from: ``"hit"`` (read back), ``"miss"`` (traced now and stored) or ``"off"``
-    (traced now, not stored: the cache is off or the program could not be written). ``name`` and
-    ``config`` say what ``fn`` is (with the arguments' signature, the program's key); ``fn`` must be
-    a function of ``args`` alone, everything else fixed by ``name`` and ``config``."""
+    (traced now, not stored: the cache is off, the module is not this library's, or the program
+    could not be written). ``module``, ``name`` and ``config`` say what ``fn`` is (with the
+    arguments' signature, the program's key, `program_key`); ``fn`` must be a function of ``args``
+    alone, everything else fixed by them."""
     leaves, tree = jax.tree_util.tree_flatten(args)
-    key = program_key(name, config, tree, leaves)
+    key = program_key(name, config, tree, leaves, module=module)
     exported = load_program(key)
     if exported is not None:
         return exported, "hit"
@@ -235,9 +241,9 @@ class CachedJit:
     and are compiled once per argument signature, in JAX's persistent cache like every program.
     ``origins`` lists, in compile order, where each signature's traced program came from."""
 
-    def __init__(self, fn: Callable, name: str, config: Any) -> None:
+    def __init__(self, fn: Callable, name: str, config: Any, *, module: str) -> None:
         enable()
-        self._fn, self._name, self._config = fn, name, config
+        self._fn, self._name, self._config, self._module = fn, name, config, module
         self._exes: dict = {}
         self.origins: list[str] = []
 
@@ -246,7 +252,7 @@ class CachedJit:
         sig = (tree, signature(leaves))
         exe = self._exes.get(sig)
         if exe is None:
-            exported, origin = exported_program(self._fn, self._name, self._config, args)
+            exported, origin = exported_program(self._fn, self._name, self._config, args, module=self._module)
             exe = self._exes[sig] = jax.jit(exported.call).trace(*leaves).lower().compile()
             self.origins.append(origin)
         return exe(*leaves)

@@ -135,8 +135,8 @@ class Compiled:
         m = self._method
         leaves = jax.tree_util.tree_leaves((params, buffers))
         t0 = time.perf_counter()
-        exported, program = exported_program(lambda p, b: m.module.apply(p, b, m.config), f"{m.name}:apply", m.config,
-                                             (params, buffers))
+        exported, program = exported_program(lambda p, b: m.module.apply(p, b, m.config), f"apply:{m.name}",
+                                             m.config, (params, buffers), module=m.module.__name__)
         t1 = time.perf_counter()
         lowered = jax.jit(exported.call).trace(*leaves).lower()
         t2 = time.perf_counter()

@@ -38,19 +38,19 @@ __all__ = ["run", "run_all"]
 @functools.lru_cache(maxsize=32)
 def _jitted_step(module, config) -> Callable:
     return compile_cache.CachedJit(lambda params, state, buffers: module.step(params, state, buffers, config),
-                                   f"{module.__name__}.step", config)
+                                   "step", config, module=module.__name__)
 
 
 @functools.lru_cache(maxsize=32)
 def _jitted_prepare_frame(module, config) -> Callable:
     return compile_cache.CachedJit(lambda params, buffers: module.prepare_frame(params, buffers, config),
-                                   f"{module.__name__}.prepare_frame", config)
+                                   "prepare_frame", config, module=module.__name__)
 
 
 @functools.lru_cache(maxsize=256)
 def _jitted_window_at(module, config, center: int) -> Callable:
     return compile_cache.CachedJit(lambda params, prepared: module.apply_window(params, prepared, center, config),
-                                   f"{module.__name__}.apply_window@{center}", config)
+                                   f"apply_window@{center}", config, module=module.__name__)
 
 
 def _jitted_window(module, config) -> Callable:

@@ -595,6 +595,25 @@ def _gradnet_readings(results: Path) -> str:
         f"\n\nValidation RelMSE (mean over the frames at every rate) at step {last[0]['step']:,}, the run's last."
 
 
+@renderer("gradnet-pixels")
+def _gradnet_pixels(results: Path) -> str:
+    """Issue 35 item 4: pixels per step against the learning rate at equal wall time, each variant's
+    validation at the end of its budget."""
+    d = load(results, "gradnet_pixels/ablation.json")
+    rows, means = [], []
+    for name, r in d["results"].items():
+        last = sorted(r["validation"], key=lambda v: v["step"])[-1]
+        spps = sorted(last["per_spp"], key=int)
+        means.append(last["relmse"])
+        rows.append([name, f"{r['pixels_per_step']:,}", f"{r['steps']:,}", num(r["seconds"], ".0f"),
+                     num(last["relmse"]), num(last["relmse_geomean"])] + [num(last["per_spp"][k]) for k in spps])
+    for row, m in zip(rows, means):
+        if m == min(means):
+            row[4] = f"**{row[4]}**"
+    return table(["variant", "pixels a step", "steps in the budget", "seconds", "validation RelMSE (mean)",
+                  "geometric mean"] + [f"{k} spp" for k in spps], rows)
+
+
 @renderer("gradnet-converged")
 def _gradnet_converged(results: Path) -> str:
     d = load(results, "gradnet_ablation_converged/ablation.json")["results"]

@@ -35,7 +35,8 @@ for name in ("gaussian", "poisson-l1"):
                   "lower": c.lower_seconds}
 # the sequence driver's programs (compile_cache.CachedJit): a pytree in and out, one per signature
 import jax.numpy as jnp
-toy = compile_cache.CachedJit(lambda x, s: {"y": jnp.cumsum(x * s[0], axis=0)}, "tests.toy", {"k": 1})
+toy = compile_cache.CachedJit(lambda x, s: {"y": jnp.cumsum(x * s[0], axis=0)}, "tests.toy", {"k": 1},
+                              module="jaxdenoise.sequence")
 y = toy(np.arange(12, dtype=np.float32).reshape(3, 4), (np.float32(2.0),))
 toy(np.ones((3, 4), np.float32), (np.float32(3.0),))  # the same signature: compiled once
 json.dump({"out": out, "info": info, "status": compile_cache.status(), "toy": np.asarray(y["y"]).tolist(),
@@ -84,8 +85,9 @@ def test_second_process_loads_the_programs_and_gets_identical_outputs(tmp_path):
 
 
 def test_a_program_key_changes_with_everything_a_trace_depends_on(monkeypatch):
-    """The traced-program key (compile_cache.program_key) tells apart the method, its config, the
-    arguments' tree, shapes and dtypes, and the library's sources; the same inputs give the same key."""
+    """The traced-program key (compile_cache.program_key) tells apart the program, its module, its
+    config, the arguments' tree, shapes and dtypes, and the library's sources; the same inputs give
+    the same key; a module outside the library gets none (traced in every process)."""
     import jax
 
     from jaxdenoise import compile_cache
@@ -94,15 +96,20 @@ def test_a_program_key_changes_with_everything_a_trace_depends_on(monkeypatch):
     cfg = get("gaussian").config
     args = ({}, {"color": np.zeros((4, 5, 3), np.float32), "spp": 4.0})
     leaves, tree = jax.tree_util.tree_flatten(args)
-    key = compile_cache.program_key("gaussian", cfg, tree, leaves)
-    assert key is not None and key == compile_cache.program_key("gaussian", cfg, tree, leaves)
+    mod = "jaxdenoise.methods.gaussian"
+    key = compile_cache.program_key("gaussian", cfg, tree, leaves, module=mod)
+    assert key is not None and key == compile_cache.program_key("gaussian", cfg, tree, leaves, module=mod)
+    # a method from the user's own module is never kept: the source digest cannot see its edits
+    assert compile_cache.program_key("gaussian", cfg, tree, leaves, module="my_methods.gaussian") is None
     other_leaves, other_tree = jax.tree_util.tree_flatten(({}, {"color": np.zeros((4, 6, 3), np.float32)}))
     others = [
-        compile_cache.program_key("bilateral", cfg, tree, leaves),
-        compile_cache.program_key("gaussian", type(cfg)(**{**cfg.__dict__, "sigma": cfg.sigma * 2}), tree, leaves),
-        compile_cache.program_key("gaussian", cfg, tree, [leaves[0].astype(np.float16), leaves[1]]),
-        compile_cache.program_key("gaussian", cfg, other_tree, other_leaves),
+        compile_cache.program_key("bilateral", cfg, tree, leaves, module=mod),
+        compile_cache.program_key("gaussian", cfg, tree, leaves, module="jaxdenoise.methods.bilateral"),
+        compile_cache.program_key("gaussian", type(cfg)(**{**cfg.__dict__, "sigma": cfg.sigma * 2}), tree, leaves,
+                                  module=mod),
+        compile_cache.program_key("gaussian", cfg, tree, [leaves[0].astype(np.float16), leaves[1]], module=mod),
+        compile_cache.program_key("gaussian", cfg, other_tree, other_leaves, module=mod),
     ]
     monkeypatch.setattr(compile_cache, "_source_digest", lambda: "an edited library")
-    others.append(compile_cache.program_key("gaussian", cfg, tree, leaves))
+    others.append(compile_cache.program_key("gaussian", cfg, tree, leaves, module=mod))
     assert len({key, *others}) == 1 + len(others)
