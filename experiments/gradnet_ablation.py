@@ -25,9 +25,9 @@ curves and the final scores as JSON and a plot.
         --steps 1000 --validate-every 200 --out docs/results/gradnet_decoder
     python experiments/gradnet_ablation.py --study readings --data data/gradnet_train_gpt --val data/gradnet_val_gpt \
         --steps 3000 --epoch-patches 256 --validate-every 500 --seeds 0,1 --out docs/results/gradnet_readings
-    python experiments/gradnet_ablation.py --study pixels --data data/gradnet_train_gpt --val data/gradnet_val_gpt \
-        --val-spps 16,64,256 --seconds 600 --steps 100000 --epoch-patches 512 --validate-every 0 \
-        --out docs/results/gradnet_pixels
+    python experiments/gradnet_ablation.py --study pixels --data data/gradnet_train_gpt --val data/gradnet_val_gpt1k \
+        --val-spps 16,64,256 --seconds 480 --steps 100000 --epoch-patches 512 --validate-every 0 \
+        --runs runs/gradnet_pixels --out docs/results/gradnet_pixels
 """
 from __future__ import annotations
 
