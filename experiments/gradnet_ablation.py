@@ -12,7 +12,7 @@ item 4): the pixels a step sees against the learning rate, at equal wall time (`
 variant, compile and validations included): our 8 crops of 64x64 at 1e-3 with clipping; 4x the
 pixels per step as 8 crops of 128x128, at 1e-3 with clipping and at the paper's 1e-4; and 4x as 32
 crops of 64x64 at the paper's 1e-4 (Sec. 5.2: 32 patches of 256x256 at 1e-4).
-Every variant trains with the same code, data, seed and steps (`jaxdenoise.train.train`), validated
+Every variant trains with the same code, data, seed and steps or seconds (`jaxdenoise.train.train`), validated
 on the same frames every ``--validate-every`` steps; the schedule is compressed to the budget (an
 epoch of ``--epoch-patches`` patches, so that Eq. 14's lambda is on for most of the run). Writes the
 curves and the final scores as JSON and a plot.
