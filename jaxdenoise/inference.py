@@ -157,10 +157,13 @@ class Compiled:
         return CompileInfo(t1 - t0, t2 - t1, t3 - t2, cache, need, program)
 
     def __call__(self, params: Any, buffers: Any) -> Any:
-        key = self._key(params, buffers)
+        from .compile_cache import signature
+
+        leaves, tree = jax.tree_util.tree_flatten((params, buffers))  # once per call: the key and the arguments
+        key = (tree, signature(leaves))
         if key not in self._cache:
             self.compile(params, buffers)
-        out = self._cache[key][0](*jax.tree_util.tree_leaves((params, buffers)))
+        out = self._cache[key][0](*leaves)
         self._ran.add(key)
         return out
 
