@@ -480,6 +480,35 @@ bind("gradnet-test256", gradnet_eval_pairs, "gradnet weights",
      [("shipped (base-path data)", "gradnet_primal/test256_gpt_shipped.json"),
       ("G-PT run, 16,000 steps (unsupervised selection)", "gradnet_primal/test256_gpt_run.json"),
       ("G-PT run, 32,000 steps (unsupervised selection)", "gradnet_primal/test256_gpt_run32k.json")], True)
+# issue 35 item 3: the G-PT run re-made and shipped (0.9.5), on the first 4 of those frames re-rendered
+bind("gradnet-shipped-gpt", gradnet_eval_pairs, "gradnet weights",
+     [("before 0.9.5 (base-path data, reference-selected)", "gradnet_primal/test256_gpt4_before.json"),
+      ("0.9.5 (G-PT data, last step, loss-selected)", "gradnet_primal/test256_gpt4_shipped.json")], True)
+
+
+@renderer("gradnet-remade")
+def _gradnet_remade(results: Path) -> str:
+    """The re-rendered frames and the re-made run against the first making of each, frame by frame:
+    RelMSE then (the 10-frame reports) / now (the 4-frame ones), and the post-process's effect (Fig. 5)."""
+    then_old = load(results, "gradnet_primal/test256_gpt_shipped.json")
+    then_run = load(results, "gradnet_primal/test256_gpt_run32k.json")
+    now_old = load(results, "gradnet_primal/test256_gpt4_before.json")
+    now_new = load(results, "gradnet_primal/test256_gpt4_shipped.json")
+
+    def by_key(d):
+        return {(str(r["spp"]), r["shot"]): r for r in d["rows"]}
+
+    t_old, t_run, n_old, n_new = map(by_key, (then_old, then_run, now_old, now_new))
+    rows = []
+    for key in sorted(n_new, key=lambda k: (int(k[0]), k[1])):
+        if key not in t_old or key not in t_run or key not in n_old:
+            raise PageError(f"gradnet-remade: frame {key[1]} at {key[0]} spp is missing from a report")
+        pairs = [(t_old[key]["input"], n_old[key]["input"]), (t_old[key]["poisson-l1"], n_old[key]["poisson-l1"]),
+                 (t_old[key]["gradnet"], n_old[key]["gradnet"]), (t_run[key]["gradnet"], n_new[key]["gradnet"])]
+        rows.append([key[0], key[1]] + [f"{num(a['relmse'], '.4g')} / {num(b['relmse'], '.4g')}" for a, b in pairs]
+                    + [num(n_new[key]["gradnet-no-postprocess"]["relmse"], ".4g")])
+    return table(["spp", "frame", "input", "poisson-l1", "gradnet, base-path weights", "gradnet, G-PT run",
+                  "G-PT run, no post-process (now)"], rows, "ll" + "r" * 5)
 
 
 @renderer("gradnet-equal-time")
@@ -568,10 +597,10 @@ def _gradnet_ablation_seeds(results: Path) -> str:
                  rows, "lrrrl") + f"\n\nSeeds' columns: validation RelMSE at step {steps[-1]:,}."
 
 
-@renderer("gradnet-readings")
-def _gradnet_readings(results: Path) -> str:
-    """Issue 35 item 2: each reading's last validation per seed, and the seed mean per rate."""
-    d = load(results, "gradnet_readings/ablation.json")["results"]
+def seeded_study(results: Path, rel: str, column: str) -> str:
+    """A ``gradnet_ablation.py --seeds`` study: each variant's last validation per seed, and the
+    seed mean per rate."""
+    d = load(results, rel)["results"]
     variants: dict[str, list[dict]] = {}
     for r in d.values():
         variants.setdefault(r["variant"], []).append(r)
@@ -579,10 +608,10 @@ def _gradnet_readings(results: Path) -> str:
     rows, means = [], []
     for name, runs in variants.items():
         if sorted(r["seed"] for r in runs) != seeds:
-            raise PageError(f"gradnet_readings: {name!r} lacks a seed of {seeds}")
+            raise PageError(f"{rel}: {name!r} lacks a seed of {seeds}")
         last = [sorted(r["validation"], key=lambda v: v["step"])[-1] for r in sorted(runs, key=lambda r: r["seed"])]
         if len({v["step"] for v in last}) != 1:
-            raise PageError(f"gradnet_readings: {name!r} ends at different steps across seeds")
+            raise PageError(f"{rel}: {name!r} ends at different steps across seeds")
         spps = sorted(last[0]["per_spp"], key=int)
         mean = sum(v["relmse"] for v in last) / len(last)
         means.append(mean)
@@ -591,8 +620,13 @@ def _gradnet_readings(results: Path) -> str:
     for row, m in zip(rows, means):
         if m == min(means):
             row[len(seeds) + 1] = f"**{row[len(seeds) + 1]}**"
-    return table(["reading"] + [f"seed {s}" for s in seeds] + ["seed mean"] + [f"mean, {k} spp" for k in spps], rows) + \
+    return table([column] + [f"seed {s}" for s in seeds] + ["seed mean"] + [f"mean, {k} spp" for k in spps], rows) + \
         f"\n\nValidation RelMSE (mean over the frames at every rate) at step {last[0]['step']:,}, the run's last."
+
+
+# issue 35 item 2: the two open readings; item 6: Fig. 12 and Fig. 17 on G-PT renders
+bind("gradnet-readings", seeded_study, "gradnet_readings/ablation.json", "reading")
+bind("gradnet-loss-gpt", seeded_study, "gradnet_ablation_gpt/ablation.json", "variant")
 
 
 @renderer("gradnet-pixels")
