@@ -13,6 +13,7 @@ filter walks its full window). Writes ``lbf_timing.json`` and ``lbf_timing.md``.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 from pathlib import Path
@@ -51,9 +52,23 @@ def main() -> None:
     ap.add_argument("--engines", default="tiles,offsets",
                     help="cross-bilateral window engines to time (the first is the default one)")
     ap.add_argument("--out", default="docs/results")
+    ap.add_argument("--before", action="append", default=[], metavar="JSON=COMMIT",
+                    help="an lbf_timing.json written by this script at an earlier commit (run from a worktree of "
+                         "it on the same frame, right before or after this run), merged as that commit's 'before' "
+                         "row; repeatable")
     args = ap.parse_args()
-    b0, _ = read_buffers(args.frame)
     home = lambda t: t.replace(str(Path.home()), "~")  # no machine paths in committed results
+    before = []
+    for spec in args.before:
+        path, sep, commit = spec.rpartition("=")
+        if not sep or not commit or not Path(path).is_file():
+            raise SystemExit(f"--before {spec!r}: expected JSON=COMMIT with JSON an existing lbf_timing.json")
+        old = json.loads(Path(path).read_text())
+        if "lbf" not in old.get("methods", {}):
+            raise SystemExit(f"--before {spec!r}: {path} has no 'lbf' row (run it with --methods lbf)")
+        before.append({"commit": commit, "command": home(old["command"]), "lbf": old["methods"]["lbf"],
+                       "load_avg_start": old["load_avg_start"], "load_avg_end": old["load_avg_end"]})
+    b0, _ = read_buffers(args.frame)
     res = {"frame": home(args.frame), "height": args.height, "width": args.width, "runs": args.runs,
            "device": str(jax.devices()[0]), "cpu_count": os.cpu_count(),
            "load_avg_start": os.getloadavg(), "methods": {},
@@ -89,6 +104,8 @@ def main() -> None:
             a, b = outs[name], outs[f"{name} ({engines[1]} engine)"]
             res["methods"][name]["max_rel_diff_to_" + engines[1]] = float(np.max(np.abs(a - b) / (np.abs(b) + 1e-3)))
     res["load_avg_end"] = os.getloadavg()
+    if before:
+        res["before"] = before
     out = Path(args.out)
     write_json(out / "lbf_timing.json", res)
     write_text(out / "lbf_timing.md", page(res))
@@ -113,14 +130,15 @@ def page(res: dict) -> str:
              f"{num(res['load_avg_end'][0], '.1f')} at end).  ",
              f"Command: `{res['command']}`", "",
              "Paper (GTX TITAN GPU): 8.4 s total, 5 s features, 3.4 s network + filter (goal 8.4 s, stretch 3.4 s)."]
-    if "before" in res:  # an earlier commit's run, merged into the JSON by hand (its "note" says how)
-        b = res["before"]
+    now = res["methods"]["lbf"]
+    for b in res.get("before", []):  # earlier commits' runs on the same frame and machine (--before)
         lb = b["lbf"]
-        lines += ["", f"Before (commit {b['commit']}: {b['note']}): `lbf` features "
+        lines += ["", f"Before (commit {b['commit']}, run from a worktree of it on the same frame and machine, "
+                  f"load average {num(b['load_avg_start'][0], '.1f')} at its start; `{b['command']}`): `lbf` features "
                   f"{num(lb['features']['median_s'], '.2f')} s, filter + spikes {num(lb['filter']['median_s'], '.2f')} s, "
-                  f"total {num(lb['total_median'], '.2f')} s; now {num(lb['total_median'] / res['methods']['lbf']['total_median'], '.1f')}x "
-                  f"faster in total, the filter {num(lb['filter']['median_s'] / res['methods']['lbf']['filter']['median_s'], '.1f')}x, "
-                  f"the features {num(lb['features']['median_s'] / res['methods']['lbf']['features']['median_s'], '.1f')}x."]
+                  f"total {num(lb['total_median'], '.2f')} s; now {num(lb['total_median'] / now['total_median'], '.2f')}x "
+                  f"faster in total, the filter {num(lb['filter']['median_s'] / now['filter']['median_s'], '.2f')}x, "
+                  f"the features {num(lb['features']['median_s'] / now['features']['median_s'], '.2f')}x."]
     for name, r in res["methods"].items():
         for key, val in r.items():
             if key.startswith("max_rel_diff_to_"):
