@@ -136,7 +136,8 @@ def page(res: dict) -> str:
         lines += ["", f"Before (commit {b['commit']}, run from a worktree of it on the same frame and machine, "
                   f"load average {num(b['load_avg_start'][0], '.1f')} at its start; `{b['command']}`): `lbf` features "
                   f"{num(lb['features']['median_s'], '.2f')} s, filter + spikes {num(lb['filter']['median_s'], '.2f')} s, "
-                  f"total {num(lb['total_median'], '.2f')} s; now {num(lb['total_median'] / now['total_median'], '.2f')}x "
+                  f"total {num(lb['total_median'], '.2f')} s; "
+                  f"now {num(lb['total_median'] / now['total_median'], '.2f')}x "
                   f"faster in total, the filter {num(lb['filter']['median_s'] / now['filter']['median_s'], '.2f')}x, "
                   f"the features {num(lb['features']['median_s'] / now['features']['median_s'], '.2f')}x."]
     for name, r in res["methods"].items():
