@@ -6,27 +6,39 @@ Every filter of Kalantari 2015 Eq. 1 is a normalized weighted sum over a square 
 ``out_i = sum_j d_ij c_j / sum_j d_ij``. Materializing ``d`` as an ``H x W x (2r+1)^2`` tensor is
 out of the question for a 55 x 55 window on a 1200 x 800 frame (3025 x 960 000 floats = 11.6 GB),
 so `window_sums` walks the offsets and keeps only running sums: the numerator ``(H, W, C)`` and the
-denominator ``(H, W, 1)``. Memory is O(H W C) whatever the radius.
+denominator ``(H, W, 1)``. Memory is O(H (W + 2r) C) (below).
 
 Layout: internally planar, ``(C, H, W)`` (the public filters take and return HWC and transpose
 once). XLA's CPU backend vectorizes along the minor axis, and a minor axis of 3 channels measured
 2x slower than a minor axis of W pixels.
 
-Loop structure: one ``lax.fori_loop`` step handles consecutive column offsets of one window row,
-unrolled in Python (one loop step per offset measured 2.3x slower on CPU): the whole row when it
-has at most ``2 unroll`` columns (``unroll`` = 8 by default: the prefilter's 11 columns are one
-step), else equal steps of at most ``unroll`` columns (55 -> 7 x 8). Steps never compute columns
-past the window's edge except to even them out: the earlier rule, steps of exactly ``unroll``,
-computed 16 columns for the prefilter's 11, and the prefilter ran 1.85x slower (1.33 s against
-0.72 s a 3-channel feature at 1200x800, interleaved runs in one process). XLA's CPU backend does
-not make that one pass over the image: a profile shows one fusion per offset that writes the
-offset's weight plane (the weight feeds both sums, and XLA does not duplicate the ``exp``), then
-one fusion per sum that adds the ``unroll`` weighted planes. Each step is wrapped in
-``jax.checkpoint`` and its contribution is added to the carry outside the checkpoint, so
-reverse-mode AD stores only the
-step index and recomputes the step in the backward pass. The backward pass of one step holds a few
-planes per unrolled offset, so backward temporaries are O(H W C unroll), independent of the radius
-(unrolling a whole 55-offset row instead measured 49 MiB against 6 MiB for 8 at 240 x 160).
+Loop structure: a ``lax.fori_loop`` over the window's rows; within a row, steps of consecutive
+column offsets unrolled in Python (one loop step per offset measured 2.3x slower on CPU): the whole
+row when it has at most ``2 unroll`` columns (``unroll`` = 8 by default: the prefilter's 11 columns
+are one step), else equal steps of at most ``unroll`` columns (55 -> 7 x 8) in an inner
+``fori_loop``. Steps never compute columns past the window's edge except to even them out: the
+earlier rule, steps of exactly ``unroll``, computed 16 columns for the prefilter's 11, and the
+prefilter ran 1.85x slower (1.33 s against 0.72 s a 3-channel feature at 1200x800, interleaved runs
+in one process). XLA's CPU backend does not make that one pass over the image: a profile shows one
+fusion per offset that writes the offset's weight plane (the weight feeds both sums, and XLA does
+not duplicate the ``exp``), then one fusion per sum that adds the ``unroll`` weighted planes.
+
+Row blocks: each row cuts every padded array once, by one ``dynamic_slice``, to the rows of its
+``dy`` and the columns of all its offsets; with several steps a row that block is the inner loop's
+carry, moved ``unroll`` columns left after each step, and every offset reads it by a *static* slice
+(`Neighbours`). A loop carry is materialized; a ``dynamic_slice`` per offset (0.9.5 and before) was
+fused into the per-offset passes, whose loops then re-loaded the slice's start from memory at every
+pixel, and LLVM did not vectorize them (XLA's LLVM dump: scalar divisions). `cross_nlm` (r = 27, 5x5
+patches, 5 features) ran 1.49x faster this way at 1200x800 (34.1 s against 50.7 s), 2.4x at
+400x600 and 2.8-3.6x at 256x384, within 2e-6 relative (interleaved in one process; the shift's
+copies cost more at large frames). The prefilter's rows are one step and read the slice as before.
+
+Memory: each row is wrapped in ``jax.checkpoint`` and its sums are added to the carry outside it,
+and each inner step is checkpointed too, so reverse-mode AD stores the row index per row and, while
+it recomputes a row, the carry of each of its steps: backward temporaries are O(H (W + 2r) C
+steps), growing with the window's width (the number of steps), not its area (at 32x256, r = 12 ->
+24: 1.05x forward, 1.4x backward; `tests/test_filters.py`). The forward holds the row blocks, about
+twice the neighbour arrays.
 
 Log-space weights: the caller returns ``log d_ij`` (always ``<= 0``, and exactly 0 at the centre
 offset, where every distance is 0). Hence the centre weight is exactly 1, the denominator is >= 1,
@@ -113,20 +125,25 @@ class Neighbours:
     ``get(name, halo=0)`` returns the ``(C, H + 2 halo, W + 2 halo)`` block of the padded array
     ``name`` whose centre block is shifted by the current offset; outside pixels read as 0 and the
     ``"valid"`` array (1 inside, 0 outside) says which they are.
+
+    It reads the loop step's blocks (`window_sums`): each padded array cut to the rows of the step's
+    ``dy`` (with the halo) and to columns starting at its first offset's, so ``get`` is a static
+    slice at the offset's column ``col`` within the step.
     """
 
-    def __init__(self, padded: Mapping[str, jax.Array], pad: int, hw: tuple[int, int], dy, dx: int):
-        self._padded = padded
-        self._pad = pad
+    def __init__(self, blocks: Mapping[str, jax.Array], halo: int, hw: tuple[int, int], dy, dx, col: int):
+        self._blocks = blocks
+        self._halo = halo
         self._hw = hw
+        self._col = col
         self.dy = dy  # traced int: offset row in [-ry, ry]
         self.dx = dx  # traced int: offset column in [-rx, rx] (or past rx in a masked last chunk)
 
     def get(self, name: str, halo: int = 0) -> jax.Array:
-        a = self._padded[name]
+        a = self._blocks[name]
         h, w = self._hw
-        start = (0, self._pad + self.dy - halo, self._pad + self.dx - halo)
-        return jax.lax.dynamic_slice(a, start, (a.shape[0], h + 2 * halo, w + 2 * halo))
+        y0, x0 = self._halo - halo, self._col + self._halo - halo
+        return a[:, y0:y0 + h + 2 * halo, x0:x0 + w + 2 * halo]
 
 
 def pad_arrays(arrays: Mapping[str, jax.Array], pad: int, extra_right: int = 0) -> dict[str, jax.Array]:
@@ -168,14 +185,11 @@ def window_sums(
     extra = nchunk * u - ncol  # column offsets past rx in the last chunk: read padding, masked below
     pad = max(ry, rx) + halo
     padded = pad_arrays(neighbours, pad, extra)
+    bw = w + 2 * halo + nchunk * u - 1  # a row's block: the columns of all its offsets
 
-    def chunk(i):
-        dy = i // nchunk - ry
-        x0 = (i % nchunk) * u - rx
-        num = jnp.zeros(v0.shape, v0.dtype)
-        den = jnp.zeros((1, h, w), v0.dtype)
+    def chunk(num, den, blocks, dy, x0):
         for k in range(u):
-            nb = Neighbours(padded, pad, (h, w), dy, x0 + k)
+            nb = Neighbours(blocks, halo, (h, w), dy, x0 + k, k)
             wgt = jnp.exp(log_weight(nb)) * nb.get("valid")
             if extra:
                 wgt = jnp.where(x0 + k <= rx, wgt, 0.0)  # past the window's last column
@@ -183,12 +197,35 @@ def window_sums(
             den = den + wgt
         return num, den
 
-    chunk = jax.checkpoint(chunk)
+    def row(i):
+        dy = i - ry
+        zero = (jnp.zeros(v0.shape, v0.dtype), jnp.zeros((1, h, w), v0.dtype))
+        # The row's block of every array, cut by one dynamic_slice. With several steps per row it is the
+        # column loop's carry, moved u columns left after each step: a loop carry is materialized, and
+        # every offset then reads it by a static slice. Read by a dynamic_slice per offset instead, the
+        # slice's start was re-loaded inside XLA's per-offset loops, which LLVM then did not vectorize:
+        # `cross_nlm` ran 1.5-3.6x slower (docs/methods/bilateral.md).
+        blocks = {k: jax.lax.dynamic_slice(a, (0, pad + dy - halo, pad - rx - halo), (a.shape[0], h + 2 * halo, bw))
+                  for k, a in padded.items()}
+        if nchunk == 1:
+            return chunk(*zero, blocks, dy, -rx)
+
+        def step(j, c):
+            num, den, blocks = c
+            num, den = chunk(num, den, blocks, dy, j * u - rx)
+            blocks = {k: jnp.concatenate([b[:, :, u:], jnp.zeros_like(b[:, :, :u])], 2) for k, b in blocks.items()}
+            return num, den, blocks
+
+        return jax.lax.fori_loop(0, nchunk, jax.checkpoint(step), (*zero, blocks))[:2]
+
+    # Each row is wrapped in jax.checkpoint and its sums are added to the carry outside it, so reverse-mode
+    # AD stores only the row index per row and recomputes the row in the backward pass.
+    row = jax.checkpoint(row)
 
     def body(i, carry):
         num, den = carry
-        dnum, dden = chunk(i)
+        dnum, dden = row(i)
         return num + dnum, den + dden
 
     init = (jnp.zeros(v0.shape, v0.dtype), jnp.zeros((1, h, w), v0.dtype))
-    return jax.lax.fori_loop(0, (2 * ry + 1) * nchunk, body, init)
+    return jax.lax.fori_loop(0, 2 * ry + 1, body, init)
