@@ -27,7 +27,7 @@ Patch distances near the border average only over the patch offsets where both `
 ``j + o`` are inside the image (``|Q|`` is that count); window neighbours outside the image get
 weight 0; the centre's log-weight is exactly 0 (every patch distance of a patch with itself is 0,
 and the cancelled distance is clamped at 0), so the output is a convex combination that falls back
-to the centre pixel when all other weights underflow. Memory is O(H W C) (``_window.py``).
+to the centre pixel when all other weights underflow. Memory is O(H (W + 2r) C) (``_window.py``).
 """
 from __future__ import annotations
 
