@@ -54,8 +54,8 @@ def main() -> None:
     ap.add_argument("--out", default="docs/results")
     ap.add_argument("--before", action="append", default=[], metavar="JSON=COMMIT",
                     help="an lbf_timing.json written by this script at an earlier commit (run from a worktree of "
-                         "it on the same frame, right before or after this run), merged as that commit's 'before' "
-                         "row; repeatable")
+                         "it under runs/, on the same frame, right before or after this run), merged as that "
+                         "commit's 'before' row; repeatable")
     args = ap.parse_args()
     home = lambda t: t.replace(str(Path.home()), "~")  # no machine paths in committed results
     before = []
@@ -63,6 +63,9 @@ def main() -> None:
         path, sep, commit = spec.rpartition("=")
         if not sep or not commit or not Path(path).is_file():
             raise SystemExit(f"--before {spec!r}: expected JSON=COMMIT with JSON an existing lbf_timing.json")
+        if Path(path).is_absolute() or not Path(path).resolve().is_relative_to(Path.cwd()):
+            raise SystemExit(f"--before {spec!r}: give JSON relative to the repository (e.g. runs/...): the command "
+                             "is written into the committed page")
         old = json.loads(Path(path).read_text())
         if "lbf" not in old.get("methods", {}):
             raise SystemExit(f"--before {spec!r}: {path} has no 'lbf' row (run it with --methods lbf)")
