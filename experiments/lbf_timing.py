@@ -67,9 +67,10 @@ def main() -> None:
             raise SystemExit(f"--before {spec!r}: give JSON relative to the repository (e.g. runs/...): the command "
                              "is written into the committed page")
         old = json.loads(Path(path).read_text())
-        if "lbf" not in old.get("methods", {}):
-            raise SystemExit(f"--before {spec!r}: {path} has no 'lbf' row (run it with --methods lbf)")
-        before.append({"commit": commit, "command": home(old["command"]), "lbf": old["methods"]["lbf"],
+        rows = {m: r for m, r in old.get("methods", {}).items() if m in ("lbf", "lbf-nlm")}
+        if not rows:
+            raise SystemExit(f"--before {spec!r}: {path} has no 'lbf' or 'lbf-nlm' row (run it with --methods lbf)")
+        before.append({"commit": commit, "command": home(old["command"]), "methods": rows,
                        "load_avg_start": old["load_avg_start"], "load_avg_end": old["load_avg_end"]})
     b0, _ = read_buffers(args.frame)
     res = {"frame": home(args.frame), "height": args.height, "width": args.width, "runs": args.runs,
@@ -133,16 +134,19 @@ def page(res: dict) -> str:
              f"{num(res['load_avg_end'][0], '.1f')} at end).  ",
              f"Command: `{res['command']}`", "",
              "Paper (GTX TITAN GPU): 8.4 s total, 5 s features, 3.4 s network + filter (goal 8.4 s, stretch 3.4 s)."]
-    now = res["methods"]["lbf"]
     for b in res.get("before", []):  # earlier commits' runs on the same frame and machine (--before)
-        lb = b["lbf"]
+        said = []
+        for name, lb in b["methods"].items():
+            now = res["methods"].get(name)
+            said.append(f"`{name}` features {num(lb['features']['median_s'], '.2f')} s, filter + spikes "
+                        f"{num(lb['filter']['median_s'], '.2f')} s, total {num(lb['total_median'], '.2f')} s"
+                        + ("" if now is None else
+                           f" (now {num(lb['total_median'] / now['total_median'], '.2f')}x faster in total, the filter "
+                           f"{num(lb['filter']['median_s'] / now['filter']['median_s'], '.2f')}x, the features "
+                           f"{num(lb['features']['median_s'] / now['features']['median_s'], '.2f')}x)"))
         lines += ["", f"Before (commit {b['commit']}, run from a worktree of it on the same frame and machine, "
-                  f"load average {num(b['load_avg_start'][0], '.1f')} at its start; `{b['command']}`): `lbf` features "
-                  f"{num(lb['features']['median_s'], '.2f')} s, filter + spikes {num(lb['filter']['median_s'], '.2f')} s, "
-                  f"total {num(lb['total_median'], '.2f')} s; "
-                  f"now {num(lb['total_median'] / now['total_median'], '.2f')}x "
-                  f"faster in total, the filter {num(lb['filter']['median_s'] / now['filter']['median_s'], '.2f')}x, "
-                  f"the features {num(lb['features']['median_s'] / now['features']['median_s'], '.2f')}x."]
+                  f"load average {num(b['load_avg_start'][0], '.1f')} at its start; `{b['command']}`): "
+                  + "; ".join(said) + "."]
     for name, r in res["methods"].items():
         for key, val in r.items():
             if key.startswith("max_rel_diff_to_"):

@@ -398,7 +398,8 @@ def _lbf_timing(results: Path) -> str:
     rows = []
     g = d["gaussian_sigma2"]["median_s"]
     named = [(f"`{m}`", r) for m, r in d["methods"].items()]
-    named += [(f"`lbf` at commit {b['commit']} (a worktree of it, same frame)", b["lbf"]) for b in d.get("before", [])]
+    named += [(f"`{m}` at commit {b['commit']} (a worktree of it, same frame)", r)
+              for b in d.get("before", []) for m, r in b["methods"].items()]
     for m, r in named:
         rows.append([m, num(r["features"]["median_s"], ".2f"), num(r["filter"]["median_s"], ".2f"),
                      num(r["network"]["median_s"], ".3f"), f"**{num(r['total_median'], '.1f')}**",
