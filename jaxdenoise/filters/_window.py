@@ -31,7 +31,9 @@ fused into the per-offset passes, whose loops then re-loaded the slice's start f
 pixel, and LLVM did not vectorize them (XLA's LLVM dump: scalar divisions). `cross_nlm` (r = 27, 5x5
 patches, 5 features) ran 1.49x faster this way at 1200x800 (34.1 s against 50.7 s), 2.4x at
 400x600 and 2.8-3.6x at 256x384, within 2e-6 relative (interleaved in one process; the shift's
-copies cost more at large frames). The prefilter's rows are one step and read the slice as before.
+copies cost more at large frames). A row of one step (the prefilter's 11 columns) reads the padded
+arrays by a ``dynamic_slice`` per offset, as 0.9.5 did: the row block made LBF's prefilter 1.2x
+slower (2.44 s against 2.09 s at 1200x800, medians of five interleaved processes; outputs identical).
 
 Memory: each row is wrapped in ``jax.checkpoint`` and its sums are added to the carry outside it,
 and each inner step is checkpointed too, so reverse-mode AD stores the row index per row and, while
@@ -131,19 +133,24 @@ class Neighbours:
     slice at the offset's column ``col`` within the step.
     """
 
-    def __init__(self, blocks: Mapping[str, jax.Array], halo: int, hw: tuple[int, int], dy, dx, col: int):
+    def __init__(self, blocks: Mapping[str, jax.Array], halo: int, hw: tuple[int, int], dy, dx, col: int,
+                 row=None):
         self._blocks = blocks
         self._halo = halo
         self._hw = hw
         self._col = col
+        self._row = row  # None: the blocks hold the offset's rows; else (traced) the first of them in the blocks
         self.dy = dy  # traced int: offset row in [-ry, ry]
         self.dx = dx  # traced int: offset column in [-rx, rx] (or past rx in a masked last chunk)
 
     def get(self, name: str, halo: int = 0) -> jax.Array:
         a = self._blocks[name]
         h, w = self._hw
-        y0, x0 = self._halo - halo, self._col + self._halo - halo
-        return a[:, y0:y0 + h + 2 * halo, x0:x0 + w + 2 * halo]
+        x0 = self._col + self._halo - halo
+        if self._row is None:
+            y0 = self._halo - halo
+            return a[:, y0:y0 + h + 2 * halo, x0:x0 + w + 2 * halo]
+        return jax.lax.dynamic_slice(a, (0, self._row + self._halo - halo, x0), (a.shape[0], h + 2 * halo, w + 2 * halo))
 
 
 def pad_arrays(arrays: Mapping[str, jax.Array], pad: int, extra_right: int = 0) -> dict[str, jax.Array]:
@@ -187,9 +194,9 @@ def window_sums(
     padded = pad_arrays(neighbours, pad, extra)
     bw = w + 2 * halo + nchunk * u - 1  # a row's block: the columns of all its offsets
 
-    def chunk(num, den, blocks, dy, x0):
+    def chunk(num, den, blocks, dy, x0, col=0, row=None):
         for k in range(u):
-            nb = Neighbours(blocks, halo, (h, w), dy, x0 + k, k)
+            nb = Neighbours(blocks, halo, (h, w), dy, x0 + k, col + k, row)
             wgt = jnp.exp(log_weight(nb)) * nb.get("valid")
             if extra:
                 wgt = jnp.where(x0 + k <= rx, wgt, 0.0)  # past the window's last column
@@ -205,10 +212,10 @@ def window_sums(
         # every offset then reads it by a static slice. Read by a dynamic_slice per offset instead, the
         # slice's start was re-loaded inside XLA's per-offset loops, which LLVM then did not vectorize:
         # `cross_nlm` ran 1.5-3.6x slower (docs/methods/bilateral.md).
+        if nchunk == 1:  # one step: each offset slices the padded arrays (the row block measured 1.2x slower)
+            return chunk(*zero, padded, dy, -rx, col=pad - rx - halo, row=pad + dy - halo)
         blocks = {k: jax.lax.dynamic_slice(a, (0, pad + dy - halo, pad - rx - halo), (a.shape[0], h + 2 * halo, bw))
                   for k, a in padded.items()}
-        if nchunk == 1:
-            return chunk(*zero, blocks, dy, -rx)
 
         def step(j, c):
             num, den, blocks = c
