@@ -79,6 +79,9 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--passes", type=int, default=1, help="adaptive passes after the pilot (default: 1)")
     r.add_argument("--initial-spp", type=int, default=None,
                    help="spp of the uniform pilot (default: a quarter of --spp, at least 2)")
+    r.add_argument("--map-spp", type=int, default=None,
+                   help="samples per pixel of the pilot that feed the map (default: half the pilot, at least 2); "
+                        "the rest are pooled by count with the last pass (docs/methods/adaptive.md)")
     common(r)
     d = sub.add_parser("dataset", help="render procedural scenes, or a split of the scene library, into "
                                        "DIR/scene_XXXX + manifest.json")
@@ -156,7 +159,7 @@ def _run(a: argparse.Namespace, argv: list[str]) -> int:
                           seed=a.seed, progress=not a.no_progress, width=a.width, height=a.height,
                           shift=a.shift, primal=a.primal, gradient_emission=a.gradient_emission,
                           adaptive=a.adaptive, passes=a.passes,
-                          initial_spp=a.initial_spp)
+                          initial_spp=a.initial_spp, map_spp=a.map_spp)
         rec["command"] = command
         ref = rec.get("reference") or {}
         noise = f", reference RelMSE(halves) {ref['relmse_halves']:.2e}" if ref else ""

@@ -2,24 +2,33 @@
 sample counts follow a map made from everything rendered so far (issue 40; the estimates and the
 map are `jaxdenoise.adaptive`, the choices docs/methods/adaptive.md).
 
-**Unbiased pooling with fixed weights.** Pass ``k`` (0 = the pilot) gives each pixel ``c_k`` samples
-with mean ``m_k``; ``c_k`` depends on the passes before it, so the count-weighted mean of all samples
-is biased (a pixel whose pilot came out bright gets more samples, which then outweigh that pilot).
-The frame is instead ``sum_k w_k m_k`` with ``w_k = B_k / B`` the pass's share of the whole sample
-budget, the same constants for every pixel. Given the passes before it, ``m_k`` is an unbiased
-mean with fixed counts, so ``E[sum_k w_k m_k] = mu sum_k w_k = mu``. That needs ``c_k >= 1`` in every
-pass (the map's floor). Every buffer (features too) is pooled the same way, so the buffers stay
-consistent. The variance of that mean is ``s^2 sum_k w_k^2 / c_k`` with ``s^2`` the per-sample
-variance pooled over the passes (each pass's squares around its own mean, ``sum_k (c_k - 1)``
-degrees of freedom). The ``spp`` layer holds the samples each pixel got (``sum_k c_k``), the header's
-``spp`` their mean (the budget).
+**Unbiased pooling: the map's samples at fixed weights, the others by count.** Pass ``k`` (0 = the
+pilot) gives each pixel ``c_k`` samples with mean ``m_k``; ``c_k`` depends on what the map read, so
+the count-weighted mean of *all* samples is biased (a pixel whose map samples came out bright gets
+more samples, which then outweigh those bright samples: the classic downward bias of adaptive
+sampling on fireflies). The samples are therefore kept in two kinds of groups. The *map's* groups
+(the pilot's first ``map_spp`` samples per pixel, and every adaptive pass but the last, each as two
+independent halves) are everything any map reads; each gets a fixed weight ``w_g = B_g / B``, its
+share of the frame's sample budget, the same constant for every pixel (given the groups before it,
+``m_g`` is an unbiased mean over a fixed count, so ``E[w_g m_g] = w_g mu``; this needs ``c_g >= 1``,
+the map's floor). The *frame's* groups (the rest of the pilot and the last pass) are never read by
+a map, so their counts are independent of their values: their count-weighted mean ``m_F`` is
+unbiased, and gets the remaining weight ``w_F = 1 - sum_g w_g``. The frame is
+``sum_g w_g m_g + w_F m_F``, ``E = mu``. Against fixed weights for every pass (``map_spp`` equal to
+the pilot), a pixel the map starves keeps its uniform pilot samples at their full count weight
+instead of putting the last pass's whole weight on its few samples. Every buffer (features too) is
+pooled the same way, so the buffers stay consistent. The variance of that mean is
+``s^2 (sum_g w_g^2 / c_g + w_F^2 / c_F)`` with ``s^2`` the per-sample variance pooled over the
+groups (each group's squares around its own mean, ``sum (c - 1)`` degrees of freedom). The ``spp``
+layer holds the samples each pixel got, the header's ``spp`` their mean (the budget).
 
-**Maps.** Each pass is one wavefront whose samples form two independent halves per pixel
-(``ceil(c/2)`` and ``floor(c/2)`` samples, `data_gen.render.render_counts`); the halves are pooled by count for the map only (its bias does not reach the
-frame). ``relvar``: the classic relative variance of the pixel mean; ``METHOD:relvar``: the same
+**Maps.** Each map group forms two independent halves per pixel (``ceil(c/2)`` and ``floor(c/2)``
+samples, one wavefront with the pass's frame part, `data_gen.render.render_counts`); the halves
+are pooled by count for the map only (its bias does not reach the frame). ``relvar``: the classic relative variance of the pixel mean; ``METHOD:relvar``: the same
 with the METHOD-denoised frame as the denominator; ``METHOD:halves`` (``METHOD`` alone): each half
-denoised by METHOD, `jaxdenoise.adaptive.halves_error`. The map's wall time (half buffers,
-denoising, estimate, allocation) is reported beside the render time.
+denoised by METHOD, `jaxdenoise.adaptive.halves_error`. The last pass tops each pixel up over the
+frame samples it already has (`jaxdenoise.adaptive.allocate`'s ``base``). The map's wall time
+(half buffers, denoising, estimate, allocation) is reported beside the render time.
 """
 from __future__ import annotations
 
@@ -112,7 +121,8 @@ def _buffers_from(acc: dict, n: np.ndarray, s2: dict, camera: dict):
 
 
 def render_adaptive(scene, *, spp: int, adaptive: str | Spec = "relvar", passes: int = 1,
-                    initial: int | None = None, seed: int = 0, settings: PathSettings = PathSettings(),
+                    initial: int | None = None, map_spp: int | None = None, seed: int = 0,
+                    settings: PathSettings = PathSettings(),
                     record: Iterable[str] = (), samples_per_pass: int = DEFAULT_SAMPLES_PER_PASS,
                     denoise: Callable[[Any], Any] | None = None, camera: dict | None = None,
                     floor_fraction: float = FLOOR_FRACTION, cap: float = CAP, smooth: int = SMOOTH,
@@ -125,10 +135,13 @@ def render_adaptive(scene, *, spp: int, adaptive: str | Spec = "relvar", passes:
     ``info`` the plan, the pass weights, and the seconds spent rendering (Dr.Jit compilation apart)
     and making maps. ``denoise(buffers) -> image`` is the map's denoiser (``jaxdenoise.load(method)``
     when None and the spec names one); ``camera`` the frame's camera matrices (RAE reads them).
+    ``map_spp``: the pilot's samples per pixel that feed the map (default `map_split`: half the
+    pilot, at least 2); the rest of the pilot is pooled by count with the last pass (module
+    docstring). ``map_spp`` equal to the pilot gives every pass a fixed weight.
     ``floor_fraction``, ``cap``: each adaptive pass gives a pixel between ``max(1, floor_fraction m)``
     and ``cap m`` samples (``m`` the pass's mean); ``smooth``: the box the error map is averaged over;
     ``cost_aware``: divide each pixel's share by its samples' cost, the mean path vertices of its
-    pilot samples (`jaxdenoise.adaptive.allocate`'s ``cost``), so the map minimizes error per time.
+    map samples (`jaxdenoise.adaptive.allocate`'s ``cost``), so the map minimizes error per time.
     """
     import jax
 
@@ -138,7 +151,9 @@ def render_adaptive(scene, *, spp: int, adaptive: str | Spec = "relvar", passes:
     width, height = film_size(scene)
     npix = width * height
     n0, budgets = plan(spp, passes, initial, npix)
-    weights = [n0 / spp] + [b / (spp * npix) for b in budgets]   # each pass's share of the budget
+    a0 = map_split(n0, map_spp)
+    fixed = [a0 / spp] + [b / (spp * npix) for b in budgets[:-1]]   # the map's passes: their budget shares
+    weights = {"map": fixed, "frame": 1.0 - sum(fixed)}
     wanted = set(record)
     if spec.method is not None:
         from jaxdenoise.methods import get
@@ -152,39 +167,50 @@ def render_adaptive(scene, *, spp: int, adaptive: str | Spec = "relvar", passes:
     names = ["color"] + record
     chans = {k: 3 if k == "color" else FEATURE_DIMS[k] for k in names}
     zeros = lambda: {k: np.zeros((height, width, chans[k])) for k in names}
-    passes_out = []                                   # per pass: (counts, sums, sumsq)
+    map_groups, frame_groups = [], []                 # (counts, sums, sumsq): fixed-weight / count-pooled
     half_sum = [zeros(), zeros()]
     half_n = [np.zeros((height, width)), np.zeros((height, width))]
-    info = {"spec": spec.label, "spp": int(spp), "pilot_spp": n0, "passes": int(passes), "weights": weights,
-            "cost_aware": bool(cost_aware),
+    info = {"spec": spec.label, "spp": int(spp), "pilot_spp": n0, "map_spp": a0, "passes": int(passes),
+            "weights": weights, "cost_aware": bool(cost_aware),
             "render_seconds": 0.0, "compile_seconds": 0.0, "map_seconds": 0.0, "pass_counts": []}
-    counts = np.full((height, width), n0, np.int64)
+    full = lambda v: np.full((height, width), v, np.int64)                     # noqa: E731
+    counts = full(n0)
     for k in range(passes + 1):
-        sums, sq = zeros(), zeros()
-        halves = _split(counts)
+        if k == 0:                                    # the map's two halves, then the pilot's frame part
+            parts = [*_split(full(a0)), *([full(n0 - a0)] if n0 > a0 else [])]
+            frame = 2 if n0 > a0 else None
+        elif k < passes:
+            parts, frame = list(_split(counts)), None
+        else:
+            parts, frame = [counts], 0
         with RenderTimer() as timer:
-            moments = render_counts(scene, parts=halves, seed=derive_seed(seed, "adaptive", k), settings=settings,
+            moments = render_counts(scene, parts=parts, seed=derive_seed(seed, "adaptive", k), settings=settings,
                                     record=record, samples_per_pass=samples_per_pass, on_pass=on_pass,
                                     vertices=cost_aware and k == 0)
-        if cost_aware and k == 0:                     # the pilot's mean path length: a sample's cost
-            verts = (moments[0][VERTICES][0] + moments[1][VERTICES][0])[..., 0] / np.maximum(counts, 1)
-            cost = np.maximum(np.asarray(ad.smooth(verts, size=smooth), np.float64), 1.0)
         info["render_seconds"] += timer.seconds
         info["compile_seconds"] += timer.compile_seconds
-        for h, (m, c) in enumerate(zip(moments, halves)):
-            for name in names:
-                s, q = m[name]
-                sums[name] += s
-                sq[name] += q
-                half_sum[h][name] += s
-            half_n[h] += c
-        passes_out.append((counts, sums, sq))
+        if cost_aware and k == 0:                     # a sample's cost: the map samples' mean path length
+            verts = (moments[0][VERTICES][0] + moments[1][VERTICES][0])[..., 0] / a0
+            cost = np.maximum(np.asarray(ad.smooth(verts, size=smooth), np.float64), 1.0)
+        if frame is None or frame > 0:                # the map's halves: fixed weight, and the map's data
+            sums, sq = zeros(), zeros()
+            for h in (0, 1):
+                for name in names:
+                    s, q = moments[h][name]
+                    sums[name] += s
+                    sq[name] += q
+                    half_sum[h][name] += s
+                half_n[h] += parts[h]
+            map_groups.append((parts[0] + parts[1], sums, sq))
+        if frame is not None:                         # pooled by count, never read by a map
+            frame_groups.append((parts[frame], {n: moments[frame][n][0] for n in names},
+                                 {n: moments[frame][n][1] for n in names}))
         info["pass_counts"].append({"min": int(counts.min()), "max": int(counts.max()),
                                     "mean": float(counts.mean())})
         if k == passes:
             break
         t0 = time.perf_counter()
-        s2 = _pooled_variance(passes_out, names)
+        s2 = _pooled_variance(map_groups, names)
         n_all = half_n[0] + half_n[1]
         if spec.method is None:
             err = ad.relative_variance((half_sum[0]["color"] + half_sum[1]["color"]) / n_all[..., None],
@@ -194,38 +220,55 @@ def render_adaptive(scene, *, spp: int, adaptive: str | Spec = "relvar", passes:
             da, db = (np.asarray(denoise(b)) for b in bufs)
             err = ad.halves_error(da, db)
         else:
-            full = {name: half_sum[0][name] + half_sum[1][name] for name in names}
-            b = _buffers_from(full, n_all, s2, camera or {})
+            whole = {name: half_sum[0][name] + half_sum[1][name] for name in names}
+            b = _buffers_from(whole, n_all, s2, camera or {})
             err = ad.relative_variance(b.color, b.color_var, denoised=np.asarray(denoise(b)))
         err = np.asarray(jax.block_until_ready(ad.smooth(err, size=smooth)), np.float64)
         floor = max(1, int(floor_fraction * budgets[k] / npix))
-        counts = ad.allocate(err, n_all, budgets[k], floor=floor, cap=cap, cost=cost if cost_aware else None)
+        counts = ad.allocate(err, n_all, budgets[k], floor=floor, cap=cap, cost=cost if cost_aware else None,
+                             base=n0 - a0 if k == passes - 1 else 0)
         info["map_seconds"] += time.perf_counter() - t0
-    return _pool(passes_out, names, weights), info
+    return _pool(map_groups, frame_groups, names, weights), info
 
 
-def _pooled_variance(passes_out, names) -> dict:
-    """Per-sample variance of each buffer, pooled over the passes (squares around each pass's mean)."""
-    dof = sum(np.maximum(c - 1, 0) for c, _, _ in passes_out)
+def map_split(pilot: int, map_spp: int | None = None) -> int:
+    """The pilot's samples per pixel that feed the map: ``map_spp``, by default half the pilot (at
+    least 2: a variance and two halves); checked to lie in ``2 .. pilot``."""
+    a = max(2, int(pilot) // 2) if map_spp is None else map_spp
+    if isinstance(a, bool) or int(a) != a or not 2 <= a <= pilot:
+        raise JaxdenoiseError(f"adaptive sampling: map_spp is {map_spp!r}; expected an integer in 2 .. {pilot} "
+                              "(the pilot's samples per pixel)")
+    return int(a)
+
+
+def _pooled_variance(groups, names) -> dict:
+    """Per-sample variance of each buffer, pooled over the groups of samples (squares around each
+    group's own mean)."""
+    dof = sum(np.maximum(c - 1, 0) for c, _, _ in groups)
     out = {}
     for name in names:
-        ss = sum(q[name] - s[name] ** 2 / np.maximum(c, 1)[..., None] for c, s, q in passes_out)
+        ss = sum(q[name] - s[name] ** 2 / np.maximum(c, 1)[..., None] for c, s, q in groups)
         out[name] = np.maximum(ss, 0.0) / np.maximum(dof, 1)[..., None]
     return out
 
 
-def _pool(passes_out, names, weights) -> dict:
-    """The frame: ``sum_k w_k m_k`` per buffer, its variance of the mean, and ``spp_map``."""
-    s2 = _pooled_variance(passes_out, names)
-    eff = sum(w * w / c for w, (c, _, _) in zip(weights, passes_out))            # sum_k w_k^2 / c_k
+def _pool(map_groups, frame_groups, names, weights) -> dict:
+    """The frame: ``sum_k w_k m_k`` over the map's groups plus ``w_F`` times the count-pooled mean of
+    the frame groups, each buffer's variance of that mean, and ``spp_map``."""
+    groups = map_groups + frame_groups
+    s2 = _pooled_variance(groups, names)
+    wf = weights["frame"]
+    nf = sum(c for c, _, _ in frame_groups)
+    eff = sum(w * w / c for w, (c, _, _) in zip(weights["map"], map_groups)) + wf * wf / nf
     out = {}
     for name in names:
-        mean = sum(w * s[name] / c[..., None] for w, (c, s, _) in zip(weights, passes_out))
+        mean = sum(w * s[name] / c[..., None] for w, (c, s, _) in zip(weights["map"], map_groups))
+        mean = mean + wf * sum(s[name] for _, s, _ in frame_groups) / nf[..., None]
         var = s2[name] * eff[..., None]
         out[name] = mean.astype(np.float32)
         if name == "color":
             out["color_var"] = var.astype(np.float32)
         else:
             out[f"{name}_var"] = var.mean(-1, keepdims=True).astype(np.float32)
-    out["spp_map"] = sum(c for c, _, _ in passes_out).astype(np.float32)[..., None]
+    out["spp_map"] = sum(c for c, _, _ in groups).astype(np.float32)[..., None]
     return out

@@ -161,7 +161,7 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
                 samples_per_pass: int = DEFAULT_SAMPLES_PER_PASS, width: int | None = None,
                 height: int | None = None, shift: str | None = None, primal: str = "base",
                 gradient_emission: str = "separate", label: str | None = None, adaptive: str | None = None, passes: int = 1,
-                initial_spp: int | None = None, _stop_after: int | None = None) -> dict:
+                initial_spp: int | None = None, map_spp: int | None = None, _stop_after: int | None = None) -> dict:
     """Render noisy frames at every ``spp`` (``instances`` independent realizations each) and a
     ``ref_spp`` reference into ``out_dir``; return the shot's manifest record (also in ``shot.json``).
 
@@ -176,8 +176,9 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
     and the resume keys (default: the XML path as given, a dict's ``__name__``, ``library:<name>@<digest>``
     for a library scene, ``mitsuba.Scene`` for a loaded scene).
     ``adaptive`` (`data_gen.adaptive.parse_spec`: ``relvar``, ``METHOD``, ``METHOD:relvar|halves``)
-    renders every noisy frame adaptively: an ``initial_spp`` uniform pilot, then ``passes`` passes
-    whose per-pixel counts follow the map; the frame gets the ``spp`` layer (`data_gen.adaptive`).
+    renders every noisy frame adaptively: an ``initial_spp`` uniform pilot (of which ``map_spp``
+    samples per pixel feed the map), then ``passes`` passes whose per-pixel counts follow the map; the
+    frame gets the ``spp`` layer (`data_gen.adaptive`).
     """
     from jaxdenoise.buffers import Buffers
     from jaxdenoise.fsutil import remove_stale_temporaries, write_json
@@ -195,7 +196,7 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
     shift = _check_shift(shift, primal, gradient_emission)
     settings = PathSettings(max_depth=int(max_depth), rr_depth=int(rr_depth))
     label = _scene_label(scene) if label is None else str(label)
-    spec = _check_adaptive(adaptive, spp, passes, initial_spp)
+    spec = _check_adaptive(adaptive, spp, passes, initial_spp, map_spp)
     loaded = load_scene(scene, width=width, height=height)
     desc = describe(loaded)
     w, h = film_size(loaded)
@@ -226,7 +227,8 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
                     key.update(fields=fields)
             if spec is not None:
                 fields = fields + [SAMPLE_COUNT_FIELD]
-                key.update(fields=fields, adaptive=spec.label, passes=int(passes), initial_spp=initial_spp)
+                key.update(fields=fields, adaptive=spec.label, passes=int(passes), initial_spp=initial_spp,
+                           map_spp=map_spp)
             jobs.append((name, key, s, i, fields))
     if ref_spp:
         jobs.append(("reference.exr", dict(base_key, spp=int(ref_spp), reference=True), int(ref_spp), None, ["color"]))
@@ -267,7 +269,8 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
                 fseed = derive_seed(seed, "noisy", s, inst)
                 if spec is not None:
                     data, seconds, compile_seconds, adaptive_info = _adaptive_frame(
-                        loaded, s, fseed, settings, fields, samples_per_pass, spec, passes, initial_spp, camera, tick)
+                        loaded, s, fseed, settings, fields, samples_per_pass, spec, passes, initial_spp, map_spp, camera,
+                        tick)
                     buffer_seconds, stats = None, None
                 else:
                     data, seconds, compile_seconds, buffer_seconds, stats = _noisy_frame(
@@ -276,7 +279,8 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
                 attrs = _attrs(base_key, s, inst, seconds)
                 if spec is not None:
                     attrs.update(adaptive=spec.label, adaptive_passes=int(passes),
-                                 adaptive_pilot_spp=int(adaptive_info["pilot_spp"]))
+                                 adaptive_pilot_spp=int(adaptive_info["pilot_spp"]),
+                                 adaptive_map_spp=int(adaptive_info["map_spp"]))
                 if buffer_seconds is not None:
                     attrs.update(gradient_shift=shift, primal=primal, gradient_emission=gradient_emission)
                 write_buffers(out_dir / name, bufs, attrs)
@@ -356,25 +360,27 @@ def _mode(name: str) -> str:
     return stem.split("_", 2)[2] if stem.count("_") >= 2 else ""
 
 
-def _check_adaptive(adaptive, spp, passes, initial_spp):
+def _check_adaptive(adaptive, spp, passes, initial_spp, map_spp):
     """The parsed adaptive spec (None: uniform sampling), with every spp's plan checked up front."""
     if adaptive is None:
         return None
-    from .adaptive import parse_spec, plan
+    from .adaptive import map_split, parse_spec, plan
 
     spec = parse_spec(adaptive)
     for s in spp:
-        plan(int(s), passes, initial_spp, 1)
+        map_split(plan(int(s), passes, initial_spp, 1)[0], map_spp)
     return spec
 
 
-def _adaptive_frame(loaded, spp, fseed, settings, fields, samples_per_pass, spec, passes, initial_spp, camera, tick):
+def _adaptive_frame(loaded, spp, fseed, settings, fields, samples_per_pass, spec, passes, initial_spp, map_spp,
+                    camera, tick):
     """(buffers dict, seconds, compile seconds, the run's record) of one adaptive frame; the seconds
     are the render's and the maps' (estimates and denoising)."""
     from .adaptive import render_adaptive
 
     record_feats = [f for f in FEATURES if f in fields or f"{f}_var" in fields]
-    data, info = render_adaptive(loaded, spp=spp, adaptive=spec, passes=passes, initial=initial_spp, seed=fseed,
+    data, info = render_adaptive(loaded, spp=spp, adaptive=spec, passes=passes, initial=initial_spp,
+                                 map_spp=map_spp, seed=fseed,
                                  settings=settings, record=record_feats, samples_per_pass=samples_per_pass,
                                  camera=camera, on_pass=tick)
     return data, info["render_seconds"] + info["map_seconds"], info["compile_seconds"], info

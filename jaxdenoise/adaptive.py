@@ -66,7 +66,7 @@ def smooth(error, *, size: int = SMOOTH):
     return box_mean(e[..., None], size=size)[..., 0]
 
 
-def allocate(error, counts, total: int, *, floor: int = 1, cap: float = 8.0, cost=None) -> np.ndarray:
+def allocate(error, counts, total: int, *, floor: int = 1, cap: float = 8.0, cost=None, base=0) -> np.ndarray:
     """Integer samples per pixel for the next pass, (H, W) int64 summing to exactly ``total``.
 
     ``error``: the estimated relative error of each pixel now (H, W); ``counts``: the samples each
@@ -79,6 +79,11 @@ def allocate(error, counts, total: int, *, floor: int = 1, cap: float = 8.0, cos
     others. The counts then minimize the summed error for a fixed *time*,
     ``c_i ~ sqrt(e_i n_i / t_i)`` (still scaled to ``total`` samples), so an expensive pixel (long
     glass paths) gets fewer samples than its error alone would give it.
+
+    ``base`` (scalar or (H, W), non-negative): samples each pixel will have in its estimate besides
+    this pass's, pooled with them by count (`data_gen.adaptive`'s frame part of the pilot). The pass
+    then tops the pixels up: ``c_i = clip(lam sqrt(e_i n_i / t_i) - base_i, floor, cap m)``, the
+    least summed error for ``base_i + c_i`` samples (water-filling).
     """
     e = np.asarray(error, np.float64)
     n = np.asarray(counts, np.float64)
@@ -102,16 +107,19 @@ def allocate(error, counts, total: int, *, floor: int = 1, cap: float = 8.0, cos
             raise JaxdenoiseError(f"allocate: cost must be finite and positive, shape {e.shape}")
         s = s / t
     s = np.sqrt(s).reshape(-1)
+    b = np.broadcast_to(np.asarray(base, np.float64), e.shape).reshape(-1)
+    if not np.all(np.isfinite(b)) or np.any(b < 0):
+        raise JaxdenoiseError(f"allocate: base must be finite and non-negative, a scalar or shape {e.shape}")
     if not np.any(s > 0):
         s = np.ones_like(s)
-    lo_lam, hi_lam = 0.0, (hi / s[s > 0].min()) * 2
-    for _ in range(100):                       # bisection on lam: sum(clip(lam s)) is monotone in it
+    lo_lam, hi_lam = 0.0, ((hi + b.max()) / s[s > 0].min()) * 2
+    for _ in range(100):                       # bisection on lam: sum(clip(lam s - b)) is monotone in it
         lam = 0.5 * (lo_lam + hi_lam)
-        if np.clip(lam * s, floor, hi).sum() < total:
+        if np.clip(lam * s - b, floor, hi).sum() < total:
             lo_lam = lam
         else:
             hi_lam = lam
-    c = np.clip(hi_lam * s, floor, hi)
+    c = np.clip(hi_lam * s - b, floor, hi)
     c *= total / c.sum()                       # exact total before rounding (bisection tolerance)
     out = np.floor(c).astype(np.int64)
     out = np.maximum(out, floor)

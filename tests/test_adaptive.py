@@ -41,6 +41,17 @@ def test_allocate_follows_the_square_root_rule_and_is_uniform_without_signal():
     assert c.tolist() == [[200, 100]]                      # four times the cost: half the samples
 
 
+def test_allocate_tops_up_over_the_samples_a_pixel_already_has():
+    err = np.array([[1.0, 4.0, 16.0, 0.0, 1e-4]])
+    c = ad.allocate(err, np.ones((1, 5)), 700, floor=0, cap=100.0, base=10)
+    assert c.sum() == 700 and c[0, 3] == 0 and c[0, 4] == 0   # no signal, or too little to top up
+    np.testing.assert_allclose((c[0, :3] + 10) / (c[0, 0] + 10), [1, 2, 4], rtol=0.01)
+    np.testing.assert_array_equal(ad.allocate(err, np.ones((1, 5)), 700, floor=0, cap=100.0, base=0),
+                                  ad.allocate(err, np.ones((1, 5)), 700, floor=0, cap=100.0))
+    with pytest.raises(JaxdenoiseError, match="base must be finite and non-negative"):
+        ad.allocate(err, np.ones((1, 5)), 700, base=-1)
+
+
 @pytest.mark.parametrize("bad, match", [
     (dict(error=np.full((2, 2), np.nan)), "finite"),
     (dict(error=-np.ones((2, 2))), "non-negative"),
@@ -84,6 +95,85 @@ def test_specs_and_plans_are_checked():
     assert plan(4, 1, None, 3) == (2, [6])
     with pytest.raises(JaxdenoiseError, match="pilot has 4 spp"):
         plan(4, 1, 4, 3)
+
+
+def test_map_split_is_checked():
+    from data_gen.adaptive import map_split
+
+    assert map_split(16) == 8 and map_split(4) == 2 and map_split(3) == 2 and map_split(2) == 2
+    assert map_split(16, 16) == 16
+    for bad in (1, 17, 2.5):
+        with pytest.raises(JaxdenoiseError, match="map_spp is"):
+            map_split(16, bad)
+
+
+class _NoTimer:
+    seconds = compile_seconds = 0.0
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return None
+
+
+def _fake_render_counts(scale):
+    """A stand-in for `render_counts`: per-part sums of made-up samples (seeded by the call), the
+    pilot's frame part (its third part) multiplied by ``scale``."""
+    from data_gen.integrator import FEATURE_DIMS
+    from data_gen.render import VERTICES
+
+    calls = []
+
+    def fake(scene, *, parts, seed, settings, record, samples_per_pass, on_pass, vertices):
+        calls.append([np.array(p) for p in parts])
+        rng = np.random.default_rng(len(calls))
+        out = []
+        for q, c in enumerate(parts):
+            m = rng.gamma(0.5, 1.0, c.shape + (3,)) * (scale if (len(calls), q) == (1, 2) else 1.0)
+            res = {"color": (m * c[..., None], (m * m + 0.5) * c[..., None])}
+            for name in record:                                 # features: constant per sample
+                ones = np.ones(c.shape + (FEATURE_DIMS[name],))
+                res[name] = (0.5 * ones * c[..., None], 0.25 * ones * c[..., None])
+            if vertices:
+                res[VERTICES] = (3.0 * c[..., None], 9.0 * c[..., None])
+            out.append(res)
+        return out
+    return fake, calls
+
+
+@pytest.mark.parametrize("spec", ["relvar", "oidn:halves"])
+def test_the_maps_never_read_the_frames_own_samples(monkeypatch, spec):
+    """Unbiasedness rests on it: the counts of the last pass are the same whatever the pilot's frame
+    part holds (here 1000x brighter), and the frame is the fixed-weight map part plus the count-pooled
+    frame part."""
+    import data_gen.adaptive as da
+
+    runs = []
+    for scale in (1.0, 1000.0):
+        fake, calls = _fake_render_counts(scale)
+        monkeypatch.setattr(da, "render_counts", fake)
+        monkeypatch.setattr(da, "film_size", lambda scene: (9, 7))
+        monkeypatch.setattr(da, "RenderTimer", _NoTimer)
+        out, info = da.render_adaptive(None, spp=16, adaptive=spec, passes=1,
+                                       denoise=lambda b: np.asarray(b.color) * 0.9)
+        runs.append((out, info, calls))
+    (out, info, calls), (_, _, calls2) = runs
+    assert [c.tolist() for c in calls[1]] == [c.tolist() for c in calls2[1]]
+    assert info["pilot_spp"] == 4 and info["map_spp"] == 2 and len(calls[0]) == 3
+    np.testing.assert_array_equal(calls[0][2], 2)                   # the pilot's frame part: 2 spp
+    assert int(calls[1][0].sum()) == 12 * 63 and calls[1][0].min() >= 1
+    w = info["weights"]
+    assert w["map"] == [2 / 16] and w["frame"] == 14 / 16
+    fake, _ = _fake_render_counts(1.0)
+    (a1, a2, b), (f,) = fake(None, parts=calls[0], seed=0, settings=None, record=(), samples_per_pass=0,
+                             on_pass=None, vertices=False), fake(None, parts=calls[1], seed=0, settings=None,
+                                                                  record=(), samples_per_pass=0, on_pass=None,
+                                                                  vertices=False)
+    cb, c1 = calls[0][2][..., None], calls[1][0][..., None]
+    want = 2 / 16 * (a1["color"][0] + a2["color"][0]) / 2 + 14 / 16 * (b["color"][0] + f["color"][0]) / (cb + c1)
+    np.testing.assert_allclose(out["color"], want, rtol=1e-6)
+    np.testing.assert_array_equal(out["spp_map"][..., 0], 4 + calls[1][0])
 
 
 # -- the data contract -------------------------------------------------------------------------------
@@ -146,7 +236,11 @@ def _scene(res):
 @pytest.mark.mitsuba
 def test_adaptive_frames_are_unbiased_per_pixel():
     """Adaptive passes (relvar map, two passes) against an independent 4096-spp render: |z| < 5 for
-    every pixel, 4x4 block and the image, with the frame's own variance channel."""
+    every pixel, 4x4 block and the image, with the frames' own variance channels. The mean of four
+    independent adaptive frames is tested (a bias stays, the noise halves): one 64-spp frame's
+    per-pixel variance, from heavy-tailed samples, puts single pixels past |z| = 5 on some seeds with
+    any pooling (measured: 6.1 and 6.5 on two of six seeds, with fixed weights for every pass and with
+    this pooling; 2.7-4.4 for the mean of four on all six)."""
     from data_gen.adaptive import render_adaptive
     from data_gen.integrator import PathSettings
     from data_gen.render import render_buffers
@@ -154,11 +248,12 @@ def test_adaptive_frames_are_unbiased_per_pixel():
     scene = _scene(12)
     st = PathSettings(max_depth=8, rr_depth=5)
     ref = render_buffers(scene, spp=4096, seed=99, settings=st)
-    out, info = render_adaptive(scene, spp=64, adaptive="relvar", passes=2, seed=5, settings=st)
-    assert info["pass_counts"][1]["max"] > 2 * info["pass_counts"][1]["min"]   # the map did move samples
-    assert float(out["spp_map"].mean()) == 64.0
-    d = (out["color"] - ref["color"]).astype(np.float64)
-    v = (out["color_var"] + ref["color_var"]).astype(np.float64)
+    runs = [render_adaptive(scene, spp=64, adaptive="relvar", passes=2, seed=5 + i, settings=st) for i in range(4)]
+    for out, info in runs:
+        assert info["pass_counts"][1]["max"] > 2 * info["pass_counts"][1]["min"]   # the map did move samples
+        assert float(out["spp_map"].mean()) == 64.0
+    d = (np.mean([out["color"] for out, _ in runs], 0) - ref["color"]).astype(np.float64)
+    v = (np.sum([out["color_var"] for out, _ in runs], 0) / 16 + ref["color_var"]).astype(np.float64)
     z = [np.abs(d) / np.sqrt(v + 1e-12)]
     blocks = lambda a: a.reshape(3, 4, 3, 4, 3).sum((1, 3))                     # noqa: E731
     z.append(np.abs(blocks(d)) / np.sqrt(blocks(v)))
