@@ -171,7 +171,9 @@ def summarize(res: dict) -> list[dict]:
                     eq.append(e_eq)
                     t_ad.append(total)
                 mean = lambda v: float(np.mean(v))
+                geo = lambda u: float(np.exp(np.mean(np.log(np.asarray(u) / np.asarray(ad)))))  # noqa: E731
                 rows.append({"spec": spec, "spp": bud, "method": m, "adaptive": mean(ad), "uniform_equal_spp": mean(un),
+                             "geo_gain_equal_spp": geo(un), "geo_gain_equal_time": geo(eq),
                              "uniform_equal_time": mean(eq), "adaptive_seconds": mean(t_ad),
                              "gain_equal_spp": mean(un) / mean(ad), "gain_equal_time": mean(eq) / mean(ad),
                              "wins_equal_time": int(sum(e > x for e, x in zip(eq, ad))),
@@ -199,17 +201,22 @@ def page(res: dict) -> str:
              "Equal time: the uniform curve (2-128 spp, render + denoise) at the adaptive run's total time "
              "(render + map + denoise), interpolated in log-log per scene; *wins* counts the scenes where "
              "adaptive is below it; *outside* the scenes whose adaptive time fell outside the uniform range "
-             "(the nearest end is used).", ""]
+             "(the nearest end is used). *geo*: the geometric mean over the scenes of the per-scene gain, which one "
+             "scene's fireflies sway less than the ratio of the means.", ""]
     for spec in res["specs"]:
         lines += [f"## Map: `{spec}`", "",
-                  "| spp | method | adaptive | uniform, equal spp | gain | uniform, equal time | gain | wins | outside | adaptive s |",
-                  "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+                  "| spp | method | adaptive | uniform, equal spp | gain | geo | uniform, equal time | gain | geo | wins | "
+                  "outside | adaptive s |",
+                  "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
         for r in res["summary"]:
             if r["spec"] != spec:
                 continue
+            geo = lambda k: num(r[k], ".3f") if k in r else "-"  # noqa: E731
             lines.append(f"| {r['spp']} | {r['method']} | {num(r['adaptive'])} | {num(r['uniform_equal_spp'])} | "
-                         f"{num(r['gain_equal_spp'], '.3f')} | {num(r['uniform_equal_time'])} | "
-                         f"{num(r['gain_equal_time'], '.3f')} | {r['wins_equal_time']}/{r['scenes']} | "
+                         f"{num(r['gain_equal_spp'], '.3f')} | {geo('geo_gain_equal_spp')} | "
+                         f"{num(r['uniform_equal_time'])} | "
+                         f"{num(r['gain_equal_time'], '.3f')} | {geo('geo_gain_equal_time')} | "
+                         f"{r['wins_equal_time']}/{r['scenes']} | "
                          f"{r['outside_uniform_range']} | {num(r['adaptive_seconds'], '.3f')} |")
         lines.append("")
     lines += ["## Per scene: render and denoise seconds", "",

@@ -899,6 +899,8 @@ STUDIES: dict[str, tuple[str, str]] = {
     "inverse_rendering/inverse_rendering.md": ("inverse_rendering", "inverse_rendering/inverse_rendering.json"),
     "adaptive/adaptive.md": ("adaptive", "adaptive/adaptive.json"),
     "adaptive/variants.md": ("adaptive_variants", "adaptive/variants.json"),
+    "adaptive/pooling_16spp/variants.md": ("adaptive_variants", "adaptive/pooling_16spp/variants.json"),
+    "adaptive/pooling_64spp/variants.md": ("adaptive_variants", "adaptive/pooling_64spp/variants.json"),
     "gradient_emission/gradient_emission.md": ("gradient_emission", "gradient_emission/gradient_emission.json"),
     "tiling/tiling.md": ("tiling", "tiling/tiling.json"),
     "demc_rates/demc_levels.md": ("demc_levels", "demc_rates/demc_levels.json"),
