@@ -24,10 +24,11 @@ layer holds the samples each pixel got, the header's ``spp`` their mean (the bud
 
 **Maps.** Each map group forms two independent halves per pixel (``ceil(c/2)`` and ``floor(c/2)``
 samples, one wavefront with the pass's frame part, `data_gen.render.render_counts`); the halves
-are pooled by count for the map only (its bias does not reach the frame). ``relvar``: the classic relative variance of the pixel mean; ``METHOD:relvar``: the same
-with the METHOD-denoised frame as the denominator; ``METHOD:halves`` (``METHOD`` alone): each half
-denoised by METHOD, `jaxdenoise.adaptive.halves_error`. The last pass tops each pixel up over the
-frame samples it already has (`jaxdenoise.adaptive.allocate`'s ``base``). The map's wall time
+are pooled by count for the map only (its bias does not reach the frame). ``relvar``: the classic
+relative variance of the pixel mean; ``METHOD:relvar``: the same with the METHOD-denoised frame as
+the denominator; ``METHOD:halves`` (``METHOD`` alone): each half denoised by METHOD,
+`jaxdenoise.adaptive.halves_error`. The last pass tops each pixel up over the frame samples it
+already has (`jaxdenoise.adaptive.allocate`'s ``base``). The map's wall time
 (half buffers, denoising, estimate, allocation) is reported beside the render time.
 """
 from __future__ import annotations

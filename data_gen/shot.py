@@ -269,8 +269,8 @@ def render_shot(scene: Any, out_dir: str | os.PathLike, *, spp: Sequence[int] = 
                 fseed = derive_seed(seed, "noisy", s, inst)
                 if spec is not None:
                     data, seconds, compile_seconds, adaptive_info = _adaptive_frame(
-                        loaded, s, fseed, settings, fields, samples_per_pass, spec, passes, initial_spp, map_spp, camera,
-                        tick)
+                        loaded, s, fseed, settings, fields, samples_per_pass, spec, passes, initial_spp, map_spp,
+                        camera, tick)
                     buffer_seconds, stats = None, None
                 else:
                     data, seconds, compile_seconds, buffer_seconds, stats = _noisy_frame(

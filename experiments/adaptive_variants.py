@@ -88,7 +88,8 @@ def run(args) -> dict:
     summary = {name: {m: float(np.mean([x[m] for x in xs])) for m in ("input",) + METHODS} for name, xs in rows.items()}
     per = {name: {m: [x[m] for x in xs] for m in ("input",) + METHODS} for name, xs in rows.items()}
     return {"scenes": args.scenes, "width": args.width, "spp": args.spp, "ref_spp": args.ref_spp,
-            "renders": args.renders, "summary": summary, "per_render": per, "pooling": POOLING, "command": "python experiments/adaptive_variants.py " + " ".join(args.argv)}
+            "renders": args.renders, "summary": summary, "per_render": per,
+            "pooling": POOLING, "command": "python experiments/adaptive_variants.py " + " ".join(args.argv)}
 
 
 def page(res: dict) -> str:

@@ -150,7 +150,8 @@ class Neighbours:
         if self._row is None:
             y0 = self._halo - halo
             return a[:, y0:y0 + h + 2 * halo, x0:x0 + w + 2 * halo]
-        return jax.lax.dynamic_slice(a, (0, self._row + self._halo - halo, x0), (a.shape[0], h + 2 * halo, w + 2 * halo))
+        start = (0, self._row + self._halo - halo, x0)
+        return jax.lax.dynamic_slice(a, start, (a.shape[0], h + 2 * halo, w + 2 * halo))
 
 
 def pad_arrays(arrays: Mapping[str, jax.Array], pad: int, extra_right: int = 0) -> dict[str, jax.Array]:
