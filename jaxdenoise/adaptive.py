@@ -107,9 +107,10 @@ def allocate(error, counts, total: int, *, floor: int = 1, cap: float = 8.0, cos
             raise JaxdenoiseError(f"allocate: cost must be finite and positive, shape {e.shape}")
         s = s / t
     s = np.sqrt(s).reshape(-1)
-    b = np.broadcast_to(np.asarray(base, np.float64), e.shape).reshape(-1)
-    if not np.all(np.isfinite(b)) or np.any(b < 0):
+    b = np.asarray(base, np.float64)
+    if b.ndim and b.shape != e.shape or not np.all(np.isfinite(b)) or np.any(b < 0):
         raise JaxdenoiseError(f"allocate: base must be finite and non-negative, a scalar or shape {e.shape}")
+    b = np.broadcast_to(b, e.shape).reshape(-1)
     if not np.any(s > 0):
         s = np.ones_like(s)
     lo_lam, hi_lam = 0.0, ((hi + b.max()) / s[s > 0].min()) * 2

@@ -48,8 +48,9 @@ def test_allocate_tops_up_over_the_samples_a_pixel_already_has():
     np.testing.assert_allclose((c[0, :3] + 10) / (c[0, 0] + 10), [1, 2, 4], rtol=0.01)
     np.testing.assert_array_equal(ad.allocate(err, np.ones((1, 5)), 700, floor=0, cap=100.0, base=0),
                                   ad.allocate(err, np.ones((1, 5)), 700, floor=0, cap=100.0))
-    with pytest.raises(JaxdenoiseError, match="base must be finite and non-negative"):
-        ad.allocate(err, np.ones((1, 5)), 700, base=-1)
+    for bad in (-1, np.ones((2, 5))):
+        with pytest.raises(JaxdenoiseError, match="base must be finite and non-negative"):
+            ad.allocate(err, np.ones((1, 5)), 700, base=bad)
 
 
 @pytest.mark.parametrize("bad, match", [
