@@ -177,13 +177,15 @@ def render_adaptive(scene, *, spp: int, adaptive: str | Spec = "relvar", passes:
     full = lambda v: np.full((height, width), v, np.int64)                     # noqa: E731
     counts = full(n0)
     for k in range(passes + 1):
-        if k == 0:                                    # the map's two halves, then the pilot's frame part
+        # parts[0], parts[1]: the map's two halves (every pass but the last); `frame`: the index of
+        # the part pooled by count (the pilot's rest, the last pass), None where the pass has none
+        if k == 0:
             parts = [*_split(full(a0)), *([full(n0 - a0)] if n0 > a0 else [])]
-            frame = 2 if n0 > a0 else None
+            has_map, frame = True, (2 if n0 > a0 else None)
         elif k < passes:
-            parts, frame = list(_split(counts)), None
+            parts, has_map, frame = list(_split(counts)), True, None
         else:
-            parts, frame = [counts], 0
+            parts, has_map, frame = [counts], False, 0
         with RenderTimer() as timer:
             moments = render_counts(scene, parts=parts, seed=derive_seed(seed, "adaptive", k), settings=settings,
                                     record=record, samples_per_pass=samples_per_pass, on_pass=on_pass,
@@ -193,7 +195,7 @@ def render_adaptive(scene, *, spp: int, adaptive: str | Spec = "relvar", passes:
         if cost_aware and k == 0:                     # a sample's cost: the map samples' mean path length
             verts = (moments[0][VERTICES][0] + moments[1][VERTICES][0])[..., 0] / a0
             cost = np.maximum(np.asarray(ad.smooth(verts, size=smooth), np.float64), 1.0)
-        if frame is None or frame > 0:                # the map's halves: fixed weight, and the map's data
+        if has_map:                                   # the map's halves: fixed weight, and the map's data
             sums, sq = zeros(), zeros()
             for h in (0, 1):
                 for name in names:
