@@ -70,12 +70,13 @@ def main(argv: list[str] | None = None) -> int:
                    help="film height (default: the scene's own; 'default': the width; see --width)")
     r.add_argument("--frames", type=int, default=0,
                    help="render a camera fly-through of N frames instead (default: 0, one still shot)")
-    r.add_argument("--adaptive", default=None, metavar="METHOD[:ESTIMATOR]",
+    r.add_argument("--adaptive", default=None, metavar="METHOD[:ESTIMATOR][/K]",
                    help="sample adaptively: a uniform pilot, then --passes passes whose per-pixel counts follow a "
                         "map of the estimated error: 'relvar' (relative variance of the pixel mean), METHOD or "
                         "METHOD:halves (METHOD's error from two denoised half-buffers), METHOD:relvar (relative "
-                        "variance over the METHOD-denoised frame); the frame gets an 'spp' layer (default: none, "
-                        "uniform sampling)")
+                        "variance over the METHOD-denoised frame); /K: METHOD runs on the map's buffers pooled "
+                        "over KxK pixel blocks (K^2 times fewer pixels to denoise); the frame gets an 'spp' layer "
+                        "(default: none, uniform sampling)")
     r.add_argument("--passes", type=int, default=1, help="adaptive passes after the pilot (default: 1)")
     r.add_argument("--initial-spp", type=int, default=None,
                    help="spp of the uniform pilot (default: a quarter of --spp, at least 2)")

@@ -49,39 +49,55 @@ ESTIMATORS = ("relvar", "halves")
 FLOOR_FRACTION = 0.1    # no pixel gets fewer than this fraction of a pass's mean (at least 1 sample)
 CAP = 8.0               # nor more than this multiple of it
 COST_AWARE = True       # allocate for error per time: a pixel's share over its samples' mean path length
+BUDGETS = ("samples", "time")   # what an adaptive pass holds fixed: its samples, or their estimated time
 
 
 @dataclasses.dataclass(frozen=True)
 class Spec:
     """What drives the map: ``estimator`` in ESTIMATORS, with the denoiser ``method`` (None: the
-    classic relative variance of the noisy mean)."""
+    classic relative variance of the noisy mean); ``scale``: the map's denoiser runs on the map's
+    buffers pooled over ``scale`` x ``scale`` pixel blocks (1: full resolution), its map repeated back."""
 
     method: str | None
     estimator: str
+    scale: int = 1
 
     @property
     def label(self) -> str:
-        return self.estimator if self.method is None else f"{self.method}:{self.estimator}"
+        base = self.estimator if self.method is None else f"{self.method}:{self.estimator}"
+        return base if self.scale == 1 else f"{base}/{self.scale}"
 
 
 def parse_spec(text: str) -> Spec:
-    """``relvar`` | ``METHOD`` (= ``METHOD:halves``) | ``METHOD:relvar`` | ``METHOD:halves``."""
+    """``relvar`` | ``METHOD`` (= ``METHOD:halves``) | ``METHOD:relvar`` | ``METHOD:halves``, each
+    with a denoiser optionally followed by ``/K``: the denoiser's map at 1/K of the resolution
+    (``oidn:halves/2``)."""
     from jaxdenoise.methods import names
 
     text = str(text).strip()
-    method, _, est = text.partition(":")
+    body, slash, k = text.partition("/")
+    scale = 1
+    if slash:
+        if not k.isdigit() or int(k) < 1:
+            raise JaxdenoiseError(f"--adaptive {text!r}: '/{k}' should be a positive integer, the factor the map's "
+                                  "denoiser reduces the resolution by (e.g. oidn:halves/2)")
+        scale = int(k)
+    method, _, est = body.partition(":")
     if not _ and method in ESTIMATORS:
         method, est = "", method
     if method == "":
         if est != "relvar":
             raise JaxdenoiseError(f"--adaptive {text!r}: the estimator '{est}' needs a denoiser (METHOD:{est})")
+        if scale != 1:
+            raise JaxdenoiseError(f"--adaptive {text!r}: '/{scale}' sets the resolution of a denoiser's map; "
+                                  "'relvar' has no denoiser")
         return Spec(None, "relvar")
     est = est or "halves"
     if est not in ESTIMATORS:
         raise JaxdenoiseError(f"--adaptive {text!r}: unknown estimator '{est}'; expected one of {list(ESTIMATORS)}")
     if method not in names():
         raise JaxdenoiseError(f"--adaptive {text!r}: unknown method '{method}'; registered: {names()}")
-    return Spec(method, est)
+    return Spec(method, est, scale)
 
 
 def plan(spp: int, passes: int, initial: int | None, npix: int) -> tuple[int, list[int]]:
@@ -106,10 +122,16 @@ def _split(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return a, c - a
 
 
-def _buffers_from(acc: dict, n: np.ndarray, s2: dict, camera: dict):
-    """`Buffers` of the count-pooled mean ``acc[name] / n`` with variance ``s2 / n`` (maps only)."""
+def _buffers_from(acc: dict, n: np.ndarray, s2: dict, camera: dict, scale: int = 1):
+    """`Buffers` of the count-pooled mean ``acc[name] / n`` with variance ``s2 / n`` (maps only). With
+    ``scale`` > 1, over ``scale`` x ``scale`` pixel blocks (edge-replicated to a whole number of
+    blocks): sums and counts add up, the per-sample variance is the block's mean."""
     from jaxdenoise.buffers import Buffers
 
+    if scale > 1:
+        acc = {k: _blocks(v, scale, np.sum) for k, v in acc.items()}
+        s2 = {k: _blocks(v, scale, np.mean) for k, v in s2.items()}
+        n = _blocks(n[..., None], scale, np.sum)[..., 0]
     nn = np.maximum(n, 1)[..., None]
     f = {"color": acc["color"] / nn, "color_var": s2["color"] / nn}
     for name in acc:
@@ -121,21 +143,31 @@ def _buffers_from(acc: dict, n: np.ndarray, s2: dict, camera: dict):
                    **camera)
 
 
+def _blocks(x: np.ndarray, k: int, reduce) -> np.ndarray:
+    """(H, W, C) -> (ceil(H/k), ceil(W/k), C): ``reduce`` over k x k blocks, the last row and column
+    of blocks filled by repeating the edge."""
+    h, w = x.shape[:2]
+    x = np.pad(x, ((0, -h % k), (0, -w % k), (0, 0)), mode="edge")
+    return reduce(x.reshape(x.shape[0] // k, k, x.shape[1] // k, k, -1), axis=(1, 3))
+
+
 def render_adaptive(scene, *, spp: int, adaptive: str | Spec = "relvar", passes: int = 1,
                     initial: int | None = None, map_spp: int | None = None, seed: int = 0,
                     settings: PathSettings = PathSettings(),
                     record: Iterable[str] = (), samples_per_pass: int = DEFAULT_SAMPLES_PER_PASS,
                     denoise: Callable[[Any], Any] | None = None, camera: dict | None = None,
                     floor_fraction: float = FLOOR_FRACTION, cap: float = CAP, smooth: int = SMOOTH,
-                    cost_aware: bool = COST_AWARE,
+                    cost_aware: bool = COST_AWARE, budget: str = "samples",
                     on_pass: Callable[[float], None] | None = None) -> tuple[dict, dict]:
     """Render one frame with ``spp`` samples per pixel on average, adaptively.
 
     Returns ``(buffers, info)``: ``buffers`` as `data_gen.render.moments_to_buffers` returns them
     (``color``, ``color_var``, the recorded features and their variances) plus ``spp_map`` (H, W, 1);
-    ``info`` the plan, the pass weights, and the seconds spent rendering (Dr.Jit compilation apart)
-    and making maps. ``denoise(buffers) -> image`` is the map's denoiser (``jaxdenoise.load(method)``
-    when None and the spec names one); ``camera`` the frame's camera matrices (RAE reads them).
+    ``info`` the plan, the pass weights, and the seconds spent rendering (the passes, Dr.Jit
+    compilation apart, and the frame's pooling) and making maps (the map's halves of the buffers it
+    reads, its denoiser's calls, the estimate and the allocation). ``denoise(buffers) -> image`` is
+    the map's denoiser (``jaxdenoise.load(method)`` when None and the spec names one); ``camera``
+    the frame's camera matrices (RAE reads them).
     ``map_spp``: the pilot's samples per pixel that feed the map (default `map_split`: half the
     pilot, at least 2); the rest of the pilot is pooled by count with the last pass (module
     docstring). ``map_spp`` equal to the pilot gives every pass a fixed weight.
@@ -143,36 +175,44 @@ def render_adaptive(scene, *, spp: int, adaptive: str | Spec = "relvar", passes:
     and ``cap m`` samples (``m`` the pass's mean); ``smooth``: the box the error map is averaged over;
     ``cost_aware``: divide each pixel's share by its samples' cost, the mean path vertices of its
     map samples (`jaxdenoise.adaptive.allocate`'s ``cost``), so the map minimizes error per time.
+    ``budget``: ``"samples"`` (every adaptive pass holds its share of ``spp``) or ``"time"`` (cost-aware
+    only: each pass costs, by that cost, what its samples spread evenly would; the frame's mean spp
+    then differs from ``spp``, and the ``spp_map`` says by how much).
     """
     import jax
 
     from jaxdenoise import adaptive as ad
 
     spec = adaptive if isinstance(adaptive, Spec) else parse_spec(adaptive)
+    if budget not in BUDGETS or (budget == "time" and not cost_aware):
+        raise JaxdenoiseError(f"adaptive sampling: budget is {budget!r}; expected one of {list(BUDGETS)} "
+                              "('time' needs cost-aware maps)")
     width, height = film_size(scene)
     npix = width * height
     n0, budgets = plan(spp, passes, initial, npix)
     a0 = map_split(n0, map_spp)
     fixed = [a0 / spp] + [b / (spp * npix) for b in budgets[:-1]]   # the map's passes: their budget shares
     weights = {"map": fixed, "frame": 1.0 - sum(fixed)}
-    wanted = set(record)
+    wanted, map_feats = set(record), set()
     if spec.method is not None:
         from jaxdenoise.methods import get
 
-        wanted |= {f for f in get(spec.method).needs() if f in FEATURES}   # what the map's denoiser reads
+        map_feats = {f for f in get(spec.method).needs() if f in FEATURES}   # what the map's denoiser reads
+        wanted |= map_feats
         if denoise is None:
             from jaxdenoise.api import load
 
             denoise = load(spec.method)
     record = [f for f in FEATURES if f in wanted]
     names = ["color"] + record
+    map_names = ["color"] + [f for f in record if f in map_feats]     # what a map reads of the halves
     chans = {k: 3 if k == "color" else FEATURE_DIMS[k] for k in names}
-    zeros = lambda: {k: np.zeros((height, width, chans[k])) for k in names}
+    zeros = lambda keys=names: {k: np.zeros((height, width, chans[k])) for k in keys}  # noqa: E731
     map_groups, frame_groups = [], []                 # (counts, sums, sumsq): fixed-weight / count-pooled
-    half_sum = [zeros(), zeros()]
+    half_sum = [zeros(map_names), zeros(map_names)]
     half_n = [np.zeros((height, width)), np.zeros((height, width))]
     info = {"spec": spec.label, "spp": int(spp), "pilot_spp": n0, "map_spp": a0, "passes": int(passes),
-            "weights": weights, "cost_aware": bool(cost_aware),
+            "weights": weights, "cost_aware": bool(cost_aware), "budget": budget,
             "render_seconds": 0.0, "compile_seconds": 0.0, "map_seconds": 0.0, "pass_counts": []}
     full = lambda v: np.full((height, width), v, np.int64)                     # noqa: E731
     counts = full(n0)
@@ -202,7 +242,8 @@ def render_adaptive(scene, *, spp: int, adaptive: str | Spec = "relvar", passes:
                     s, q = moments[h][name]
                     sums[name] += s
                     sq[name] += q
-                    half_sum[h][name] += s
+                    if name in half_sum[h]:
+                        half_sum[h][name] += s
                 half_n[h] += parts[h]
             map_groups.append((parts[0] + parts[1], sums, sq))
         if frame is not None:                         # pooled by count, never read by a map
@@ -213,25 +254,37 @@ def render_adaptive(scene, *, spp: int, adaptive: str | Spec = "relvar", passes:
         if k == passes:
             break
         t0 = time.perf_counter()
-        s2 = _pooled_variance(map_groups, names)
+        s2 = _pooled_variance(map_groups, map_names)
         n_all = half_n[0] + half_n[1]
         if spec.method is None:
             err = ad.relative_variance((half_sum[0]["color"] + half_sum[1]["color"]) / n_all[..., None],
                                        s2["color"] / n_all[..., None])
         elif spec.estimator == "halves":
-            bufs = [_buffers_from(half_sum[h], half_n[h], s2, camera or {}) for h in (0, 1)]
+            bufs = [_buffers_from(half_sum[h], half_n[h], s2, camera or {}, spec.scale) for h in (0, 1)]
             da, db = (np.asarray(denoise(b)) for b in bufs)
-            err = ad.halves_error(da, db)
+            err = _full_size(ad.halves_error(da, db), spec.scale, height, width)
         else:
-            whole = {name: half_sum[0][name] + half_sum[1][name] for name in names}
-            b = _buffers_from(whole, n_all, s2, camera or {})
-            err = ad.relative_variance(b.color, b.color_var, denoised=np.asarray(denoise(b)))
+            whole = {name: half_sum[0][name] + half_sum[1][name] for name in map_names}
+            b = _buffers_from(whole, n_all, s2, camera or {}, spec.scale)
+            err = _full_size(ad.relative_variance(b.color, b.color_var, denoised=np.asarray(denoise(b))),
+                             spec.scale, height, width)
         err = np.asarray(jax.block_until_ready(ad.smooth(err, size=smooth)), np.float64)
         floor = max(1, int(floor_fraction * budgets[k] / npix))
         counts = ad.allocate(err, n_all, budgets[k], floor=floor, cap=cap, cost=cost if cost_aware else None,
-                             base=n0 - a0 if k == passes - 1 else 0)
+                             base=n0 - a0 if k == passes - 1 else 0, budget=budget)
         info["map_seconds"] += time.perf_counter() - t0
-    return _pool(map_groups, frame_groups, names, weights), info
+    t0 = time.perf_counter()
+    frame = _pool(map_groups, frame_groups, names, weights)
+    info["render_seconds"] += time.perf_counter() - t0    # the frame's assembly, as a uniform render's
+    return frame, info
+
+
+def _full_size(err, scale: int, height: int, width: int) -> np.ndarray:
+    """A map made at 1/``scale`` of the resolution, each value repeated over its block, cropped to the frame."""
+    e = np.asarray(err)
+    if scale > 1:
+        e = np.repeat(np.repeat(e, scale, axis=0), scale, axis=1)
+    return e[:height, :width]
 
 
 def map_split(pilot: int, map_spp: int | None = None) -> int:

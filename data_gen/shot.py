@@ -349,8 +349,9 @@ def render_frame(scene: Any, *, spp: int = 4, methods: Iterable[str] | None = No
 
 def noisy_name(spp: int, instance: int, spec=None) -> str:
     """A noisy frame's file: ``spp0016_00.exr``, or ``spp0016_00_adaptive-oidn-halves.exr`` for an
-    adaptive one (`data_gen.adaptive.Spec`), so both sit in one shot beside one reference."""
-    tail = "" if spec is None else "_adaptive-" + spec.label.replace(":", "-")
+    adaptive one (`data_gen.adaptive.Spec`; ``oidn:halves/2`` -> ``adaptive-oidn-halves-div2``), so
+    both sit in one shot beside one reference."""
+    tail = "" if spec is None else "_adaptive-" + spec.label.replace(":", "-").replace("/", "-div")
     return f"spp{int(spp):04d}_{int(instance):02d}{tail}.exr"
 
 

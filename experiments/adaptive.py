@@ -37,6 +37,8 @@ OUT = ROOT / "docs" / "results" / "adaptive"
 METHODS = ("input", "demc", "lbf", "oidn")
 SPECS = ("relvar", "oidn:halves", "demc:halves", "demc:relvar")
 UNIFORM = (2, 4, 8, 16, 32, 64, 128)
+BUDGET = {"samples": "",
+          "time": "; each adaptive pass holds the estimated time of its samples spread evenly, not their number"}
 COST = {True: "cost-aware maps (a pixel's share divided by its pilot samples' mean path length)",
         False: "maps by error alone (not cost-aware)"}
 
@@ -65,6 +67,7 @@ def run(args) -> dict:
     from data_gen.mitsuba_setup import RenderTimer, setup_mitsuba
     from data_gen.render import camera_matrices, render_buffers, render_reference
     from data_gen.scenes import load_scene
+    import jaxdenoise
     from jaxdenoise.buffers import Buffers
     from jaxdenoise.methods import get
     from jaxdenoise.metrics import relmse
@@ -80,13 +83,15 @@ def run(args) -> dict:
     map_spp = {b: (pilots[b] if args.map_spp == "pilot" else map_split(pilots[b], None if args.map_spp is None
                                                                          else int(args.map_spp))) for b in budgets}
     specs = args.specs.split(",")
+    dn_maps = {}
     scenes = []
     for label, scene, w, h, seed in heldout_scenes(args.procedural, args.library, args.width):
         t_scene = time.perf_counter()
         loaded = load_scene(scene, width=w, height=h)
         camera = {k: v for k, v in camera_matrices(loaded).items() if v is not None}
-        ref, ref_noise = render_reference(loaded, spp=args.ref_spp, seed=derive_seed(seed, "reference"),
-                                          settings=settings)
+        ref, ref_noise = _reference(args.ref_cache, f"{label}_{w}x{h}_{args.ref_spp}_{seed}",
+                                    lambda: render_reference(loaded, spp=args.ref_spp,
+                                                             seed=derive_seed(seed, "reference"), settings=settings))
         rec = {"scene": label, "size": list(np.shape(ref)[:2][::-1]), "ref_spp": args.ref_spp,
                "ref_relmse_halves": ref_noise, "uniform": {}, "adaptive": {}, "denoise_seconds": {}}
 
@@ -101,42 +106,80 @@ def run(args) -> dict:
             return out, b
 
         for s in UNIFORM:
-            with RenderTimer() as t:
-                f = render_buffers(loaded, spp=s, seed=derive_seed(seed, "noisy", s, 0), settings=settings,
-                                   record=record)
-            err, b = score(f, s)
-            rec["uniform"][str(s)] = {"render_seconds": t.seconds, "relmse": err}
-            if s == 16:
-                rec["denoise_seconds"] = {m: (0.0 if m == "input" else _time_call(dn[m], b)) for m in METHODS}
+            runs = []
+            for r in range(args.renders):
+                with RenderTimer() as t:
+                    f = render_buffers(loaded, spp=s, seed=derive_seed(seed, "noisy", s, r), settings=settings,
+                                       record=record)
+                err, b = score(f, s)
+                runs.append({"render_seconds": t.seconds, "relmse": err})
+                if s == 16 and r == 0:
+                    rec["denoise_seconds"] = {m: (0.0 if m == "input" else _time_call(dn[m], b)) for m in METHODS}
+            rec["uniform"][str(s)] = _mean_runs(runs)
         for spec in specs:
             sp = parse_spec(spec)
+            if sp.method is not None and sp.method not in dn:
+                dn_maps.setdefault(sp.method, jaxdenoise.load(sp.method))   # a map's denoiser beside METHODS
+            mapper = None if sp.method is None else dn.get(sp.method) or dn_maps[sp.method]
             # warm-up (not recorded): the map's XLA programs compile once per frame size
             render_adaptive(loaded, spp=budgets[0], adaptive=sp, passes=args.passes, map_spp=map_spp[budgets[0]],
-                            seed=1, settings=settings,
-                            record=record, camera=camera, denoise=None if sp.method is None else dn[sp.method],
-                            cost_aware=args.cost_aware)
+                            seed=1, settings=settings, record=record, camera=camera, denoise=mapper,
+                            cost_aware=args.cost_aware, budget=args.budget)
             for bud in budgets:
-                fields, info = render_adaptive(loaded, spp=bud, adaptive=sp, passes=args.passes,
-                                               map_spp=map_spp[bud], seed=derive_seed(
-                    seed, "adaptive", spec, bud), settings=settings, record=record, camera=camera,
-                    denoise=None if sp.method is None else dn[sp.method], cost_aware=args.cost_aware)
-                smap = fields.pop("spp_map")
-                err, _ = score(fields, bud, smap)
-                rec["adaptive"][f"{spec}@{bud}"] = {
-                    "spec": spec, "spp": bud, "render_seconds": info["render_seconds"],
-                    "map_seconds": info["map_seconds"], "pilot_spp": info["pilot_spp"], "map_spp": info["map_spp"],
-                    "pass_counts": info["pass_counts"], "relmse": err}
+                runs = []
+                for r in range(args.renders):
+                    # render 0's seed is the one a single-render run used
+                    key = (seed, "adaptive", spec, bud) + ((r,) if r else ())
+                    fields, info = render_adaptive(loaded, spp=bud, adaptive=sp, passes=args.passes,
+                                                   map_spp=map_spp[bud], seed=derive_seed(*key), settings=settings,
+                                                   record=record, camera=camera, denoise=mapper,
+                                                   cost_aware=args.cost_aware, budget=args.budget)
+                    smap = fields.pop("spp_map")
+                    err, _ = score(fields, bud, smap)
+                    runs.append({"render_seconds": info["render_seconds"], "map_seconds": info["map_seconds"],
+                                 "relmse": err, "pass_counts": info["pass_counts"]})
+                rec["adaptive"][f"{spec}@{bud}"] = {"spec": spec, "spp": bud, "pilot_spp": info["pilot_spp"],
+                                                    "map_spp": info["map_spp"], **_mean_runs(runs)}
         rec["wall_seconds"] = time.perf_counter() - t_scene
         print(f"{label}: {rec['wall_seconds']:.0f} s", flush=True)
         scenes.append(rec)
     res = {"scenes": scenes, "methods": list(METHODS), "specs": specs, "budgets": budgets, "uniform_spp": list(UNIFORM),
-           "passes": args.passes, "map_spp": {str(b): v for b, v in map_spp.items()},
-           "ref_spp": args.ref_spp, "width": args.width, "cost_aware": args.cost_aware,
+           "passes": args.passes, "renders": args.renders, "map_spp": {str(b): v for b, v in map_spp.items()},
+           "ref_spp": args.ref_spp, "width": args.width, "cost_aware": args.cost_aware, "budget": args.budget,
            "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "variant": variant,
                        "load_start": args.load_start, "load_end": os.getloadavg()[0]},
            "command": "python experiments/adaptive.py " + " ".join(args.argv)}
     res["summary"] = summarize(res)
     return res
+
+
+def _reference(cache, key: str, render):
+    """``render()``'s (reference, RelMSE of its halves), kept in ``cache`` (a folder) under ``key``
+    when one is given (written to a temporary name, then renamed)."""
+    if cache is None:
+        return render()
+    path = Path(cache) / (key.replace(":", "-").replace("/", "-") + ".npz")
+    if path.exists():
+        with np.load(path) as z:
+            return z["ref"], float(z["noise"])
+    ref, noise = render()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(tmp, ref=ref, noise=noise)
+    os.replace(tmp, path)
+    return ref, noise
+
+
+def _mean_runs(runs: list[dict]) -> dict:
+    """One entry from ``runs`` independent renders: the mean seconds and RelMSE per method, each
+    render's RelMSE under ``relmse_renders`` (with more than one); ``pass_counts`` of the first."""
+    out = {k: float(np.mean([r[k] for r in runs])) for k in runs[0] if k.endswith("_seconds")}
+    out["relmse"] = {m: float(np.mean([r["relmse"][m] for r in runs])) for m in runs[0]["relmse"]}
+    if len(runs) > 1:
+        out["relmse_renders"] = {m: [r["relmse"][m] for r in runs] for m in runs[0]["relmse"]}
+    if "pass_counts" in runs[0]:
+        out["pass_counts"] = runs[0]["pass_counts"]
+    return out
 
 
 def _equal_time(curve: list[tuple[float, float]], t: float) -> tuple[float, str]:
@@ -190,12 +233,19 @@ def _pooling(res: dict) -> str:
             "last pass pooled by count")
 
 
+def _renders(res: dict) -> str:
+    n = res.get("renders", 1)
+    return ("one render per scene, rate and map" if n == 1 else
+            f"{n} independent renders per scene, rate and map (RelMSE averaged over them per scene)")
+
+
 def page(res: dict) -> str:
     lines = ["# Denoiser-guided adaptive sampling: uniform against adaptive, at equal samples and equal time", "",
              f"Generated by `{res['command']}`. {len(res['scenes'])} scenes "
              f"({', '.join(s['scene'] for s in res['scenes'])}), {res['width']} pixels wide, "
-             f"{res['ref_spp']}-spp references; one pilot (a quarter of the budget, at least 2 spp) and "
-             f"{res['passes']} adaptive pass(es); {_pooling(res)}; {COST[res['cost_aware']]}. "
+             f"{res['ref_spp']}-spp references; {_renders(res)}; one pilot (a quarter of the budget, at least "
+             f"2 spp) and {res['passes']} adaptive pass(es); {_pooling(res)}; {COST[res['cost_aware']]}"
+             f"{BUDGET[res.get('budget', 'samples')]}. "
              f"Machine: {res['machine']['cpus']} cores, load average "
              f"{num(res['machine']['load_start'], '.2f')} at the start, {num(res['machine']['load_end'], '.2f')} at "
              "the end.", "",
@@ -268,6 +318,13 @@ def main(argv=None) -> None:
     ap.add_argument("--budgets", default="4,16,64")
     ap.add_argument("--specs", default=",".join(SPECS))
     ap.add_argument("--passes", type=int, default=1)
+    ap.add_argument("--budget", choices=("samples", "time"), default="samples",
+                    help="what an adaptive pass holds fixed: its samples (the default) or their estimated time")
+    ap.add_argument("--ref-cache", default=None,
+                    help="folder keeping the references between runs (a scene's label, size, spp and seed name "
+                         "its file); default: none")
+    ap.add_argument("--renders", type=int, default=1,
+                    help="independent renders per scene, rate and map (RelMSE and seconds averaged over them)")
     ap.add_argument("--no-cost-aware", dest="cost_aware", action="store_false",
                     help="allocate by error alone, not error per path length")
     ap.add_argument("--map-spp", default=None,

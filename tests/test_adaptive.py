@@ -53,6 +53,24 @@ def test_allocate_tops_up_over_the_samples_a_pixel_already_has():
             ad.allocate(err, np.ones((1, 5)), 700, base=bad)
 
 
+def test_allocate_can_hold_the_time_of_a_pass_instead_of_its_samples():
+    """``budget="time"``: the counts cost (by ``cost``) what ``total`` samples spread evenly would;
+    equal costs give the sample budget's counts."""
+    err = np.array([[1.0, 1.0, 16.0, 16.0]])
+    t = np.array([[1.0, 1.0, 4.0, 4.0]])
+    c = ad.allocate(err, np.ones((1, 4)), 400, floor=0, cap=100.0, cost=t, budget="time")
+    assert abs(float((c * t).sum()) - 400 * t.mean()) <= t.max()            # the time of 400 even samples
+    np.testing.assert_allclose(c[0, 2] / c[0, 0], 2.0, rtol=0.02)           # sqrt(16 / 4) : sqrt(1 / 1)
+    s = ad.allocate(err, np.ones((1, 4)), 400, floor=0, cap=100.0, cost=t)
+    assert s.sum() == 400 and c.sum() < 400                                # the dear pixels cost samples
+    same = np.ones((1, 4))
+    np.testing.assert_array_equal(ad.allocate(err, np.ones((1, 4)), 400, cost=same, budget="time"),
+                                  ad.allocate(err, np.ones((1, 4)), 400, cost=same))
+    for kw, match in [(dict(budget="time"), "needs the per-pixel cost"), (dict(budget="money"), "expected 'samples'")]:
+        with pytest.raises(JaxdenoiseError, match=match):
+            ad.allocate(err, np.ones((1, 4)), 400, **kw)
+
+
 @pytest.mark.parametrize("bad, match", [
     (dict(error=np.full((2, 2), np.nan)), "finite"),
     (dict(error=-np.ones((2, 2))), "non-negative"),
@@ -88,10 +106,21 @@ def test_specs_and_plans_are_checked():
 
     assert parse_spec("relvar") == Spec(None, "relvar")
     assert parse_spec("oidn") == Spec("oidn", "halves") and parse_spec("demc:relvar") == Spec("demc", "relvar")
+    assert parse_spec("oidn-fast:halves/2") == Spec("oidn-fast", "halves", 2)
+    assert parse_spec("oidn/3").label == "oidn:halves/3" and parse_spec("oidn/1").label == "oidn:halves"
+    from data_gen.shot import noisy_name
+
+    assert noisy_name(16, 0, parse_spec("oidn:halves/2")) == "spp0016_00_adaptive-oidn-halves-div2.exr"
     for bad, match in [("halves", "needs a denoiser"), ("oidn:psnr", "unknown estimator"),
-                       ("nosuch:halves", "unknown method")]:
+                       ("nosuch:halves", "unknown method"), ("relvar/2", "has no denoiser"),
+                       ("oidn:halves/0", "positive integer"), ("oidn/x", "positive integer")]:
         with pytest.raises(JaxdenoiseError, match=match):
             parse_spec(bad)
+    from data_gen.adaptive import render_adaptive
+
+    for kw in (dict(budget="time", cost_aware=False), dict(budget="money")):
+        with pytest.raises(JaxdenoiseError, match="budget is"):
+            render_adaptive(None, spp=16, **kw)
     assert plan(16, 2, None, 10) == (4, [60, 60])
     assert plan(4, 1, None, 3) == (2, [6])
     with pytest.raises(JaxdenoiseError, match="pilot has 4 spp"):
@@ -143,7 +172,7 @@ def _fake_render_counts(scale):
     return fake, calls
 
 
-@pytest.mark.parametrize("spec", ["relvar", "oidn:halves"])
+@pytest.mark.parametrize("spec", ["relvar", "oidn:halves", "oidn:relvar/2"])
 def test_the_maps_never_read_the_frames_own_samples(monkeypatch, spec):
     """Unbiasedness rests on it: the counts of the last pass are the same whatever the pilot's frame
     part holds (here 1000x brighter), and the frame is the fixed-weight map part plus the count-pooled
@@ -175,6 +204,34 @@ def test_the_maps_never_read_the_frames_own_samples(monkeypatch, spec):
     want = 2 / 16 * (a1["color"][0] + a2["color"][0]) / 2 + 14 / 16 * (b["color"][0] + f["color"][0]) / (cb + c1)
     np.testing.assert_allclose(out["color"], want, rtol=1e-6)
     np.testing.assert_array_equal(out["spp_map"][..., 0], 4 + calls[1][0])
+
+
+def test_a_reduced_map_denoises_the_halves_pooled_over_blocks(monkeypatch):
+    """``METHOD:halves/2``: the map's denoiser gets each half pooled over 2x2 blocks (sums and counts
+    added, the odd last row and column repeated), and its map, repeated back, drives a last pass of
+    the frame's size and budget."""
+    import data_gen.adaptive as da
+
+    fake, calls = _fake_render_counts(1.0)
+    monkeypatch.setattr(da, "render_counts", fake)
+    monkeypatch.setattr(da, "film_size", lambda scene: (9, 7))
+    monkeypatch.setattr(da, "RenderTimer", _NoTimer)
+    seen = []
+
+    def denoise(b):
+        seen.append(b)
+        return np.asarray(b.color) * (1.0 + 0.1 * len(seen))
+    out, info = da.render_adaptive(None, spp=16, adaptive="oidn:halves/2", denoise=denoise)
+    assert info["spec"] == "oidn:halves/2" and len(seen) == 2
+    fresh, _ = _fake_render_counts(1.0)                          # the same draws: the pilot's first half
+    half = fresh(None, parts=calls[0], seed=0, settings=None, record=(), samples_per_pass=0, on_pass=None,
+                 vertices=False)[0]
+    blocks = lambda x: np.pad(x, ((0, 1), (0, 1), (0, 0)), mode="edge").reshape(4, 2, 5, 2, -1).sum((1, 3))
+    n = calls[0][0][..., None].astype(float)
+    assert seen[0].color.shape == (4, 5, 3)
+    np.testing.assert_allclose(seen[0].color, blocks(half["color"][0]) / blocks(n), rtol=1e-6)
+    np.testing.assert_array_equal(seen[0].spp_map, blocks(n))
+    assert calls[1][0].shape == (7, 9) and int(calls[1][0].sum()) == 12 * 63 and out["color"].shape == (7, 9, 3)
 
 
 # -- the data contract -------------------------------------------------------------------------------
