@@ -49,7 +49,6 @@ ESTIMATORS = ("relvar", "halves")
 FLOOR_FRACTION = 0.1    # no pixel gets fewer than this fraction of a pass's mean (at least 1 sample)
 CAP = 8.0               # nor more than this multiple of it
 COST_AWARE = True       # allocate for error per time: a pixel's share over its samples' mean path length
-BUDGETS = ("samples", "time")   # what an adaptive pass holds fixed: its samples, or their estimated time
 
 
 @dataclasses.dataclass(frozen=True)
@@ -157,7 +156,7 @@ def render_adaptive(scene, *, spp: int, adaptive: str | Spec = "relvar", passes:
                     record: Iterable[str] = (), samples_per_pass: int = DEFAULT_SAMPLES_PER_PASS,
                     denoise: Callable[[Any], Any] | None = None, camera: dict | None = None,
                     floor_fraction: float = FLOOR_FRACTION, cap: float = CAP, smooth: int = SMOOTH,
-                    cost_aware: bool = COST_AWARE, budget: str = "samples",
+                    cost_aware: bool = COST_AWARE,
                     on_pass: Callable[[float], None] | None = None) -> tuple[dict, dict]:
     """Render one frame with ``spp`` samples per pixel on average, adaptively.
 
@@ -175,18 +174,12 @@ def render_adaptive(scene, *, spp: int, adaptive: str | Spec = "relvar", passes:
     and ``cap m`` samples (``m`` the pass's mean); ``smooth``: the box the error map is averaged over;
     ``cost_aware``: divide each pixel's share by its samples' cost, the mean path vertices of its
     map samples (`jaxdenoise.adaptive.allocate`'s ``cost``), so the map minimizes error per time.
-    ``budget``: ``"samples"`` (every adaptive pass holds its share of ``spp``) or ``"time"`` (cost-aware
-    only: each pass costs, by that cost, what its samples spread evenly would; the frame's mean spp
-    then differs from ``spp``, and the ``spp_map`` says by how much).
     """
     import jax
 
     from jaxdenoise import adaptive as ad
 
     spec = adaptive if isinstance(adaptive, Spec) else parse_spec(adaptive)
-    if budget not in BUDGETS or (budget == "time" and not cost_aware):
-        raise JaxdenoiseError(f"adaptive sampling: budget is {budget!r}; expected one of {list(BUDGETS)} "
-                              "('time' needs cost-aware maps)")
     width, height = film_size(scene)
     npix = width * height
     n0, budgets = plan(spp, passes, initial, npix)
@@ -212,70 +205,70 @@ def render_adaptive(scene, *, spp: int, adaptive: str | Spec = "relvar", passes:
     half_sum = [zeros(map_names), zeros(map_names)]
     half_n = [np.zeros((height, width)), np.zeros((height, width))]
     info = {"spec": spec.label, "spp": int(spp), "pilot_spp": n0, "map_spp": a0, "passes": int(passes),
-            "weights": weights, "cost_aware": bool(cost_aware), "budget": budget,
+            "weights": weights, "cost_aware": bool(cost_aware),
             "render_seconds": 0.0, "compile_seconds": 0.0, "map_seconds": 0.0, "pass_counts": []}
     full = lambda v: np.full((height, width), v, np.int64)                     # noqa: E731
     counts = full(n0)
-    for k in range(passes + 1):
-        # parts[0], parts[1]: the map's two halves (every pass but the last); `frame`: the index of
-        # the part pooled by count (the pilot's rest, the last pass), None where the pass has none
-        if k == 0:
-            parts = [*_split(full(a0)), *([full(n0 - a0)] if n0 > a0 else [])]
-            has_map, frame = True, (2 if n0 > a0 else None)
-        elif k < passes:
-            parts, has_map, frame = list(_split(counts)), True, None
-        else:
-            parts, has_map, frame = [counts], False, 0
-        with RenderTimer() as timer:
+    # Everything but the maps is the render's time (the passes, the bookkeeping, the frame's pooling),
+    # Dr.Jit's one-off kernel compilation apart, as for a uniform render.
+    with RenderTimer() as timer:
+        for k in range(passes + 1):
+            # parts[0], parts[1]: the map's two halves (every pass but the last); `frame`: the index of
+            # the part pooled by count (the pilot's rest, the last pass), None where the pass has none
+            if k == 0:
+                parts = [*_split(full(a0)), *([full(n0 - a0)] if n0 > a0 else [])]
+                has_map, frame = True, (2 if n0 > a0 else None)
+            elif k < passes:
+                parts, has_map, frame = list(_split(counts)), True, None
+            else:
+                parts, has_map, frame = [counts], False, 0
             moments = render_counts(scene, parts=parts, seed=derive_seed(seed, "adaptive", k), settings=settings,
                                     record=record, samples_per_pass=samples_per_pass, on_pass=on_pass,
                                     vertices=cost_aware and k == 0)
-        info["render_seconds"] += timer.seconds
-        info["compile_seconds"] += timer.compile_seconds
-        if cost_aware and k == 0:                     # a sample's cost: the map samples' mean path length
-            verts = (moments[0][VERTICES][0] + moments[1][VERTICES][0])[..., 0] / a0
-            cost = np.maximum(np.asarray(ad.smooth(verts, size=smooth), np.float64), 1.0)
-        if has_map:                                   # the map's halves: fixed weight, and the map's data
-            sums, sq = zeros(), zeros()
-            for h in (0, 1):
-                for name in names:
-                    s, q = moments[h][name]
-                    sums[name] += s
-                    sq[name] += q
-                    if name in half_sum[h]:
-                        half_sum[h][name] += s
-                half_n[h] += parts[h]
-            map_groups.append((parts[0] + parts[1], sums, sq))
-        if frame is not None:                         # pooled by count, never read by a map
-            frame_groups.append((parts[frame], {n: moments[frame][n][0] for n in names},
-                                 {n: moments[frame][n][1] for n in names}))
-        info["pass_counts"].append({"min": int(counts.min()), "max": int(counts.max()),
-                                    "mean": float(counts.mean())})
-        if k == passes:
-            break
-        t0 = time.perf_counter()
-        s2 = _pooled_variance(map_groups, map_names)
-        n_all = half_n[0] + half_n[1]
-        if spec.method is None:
-            err = ad.relative_variance((half_sum[0]["color"] + half_sum[1]["color"]) / n_all[..., None],
-                                       s2["color"] / n_all[..., None])
-        elif spec.estimator == "halves":
-            bufs = [_buffers_from(half_sum[h], half_n[h], s2, camera or {}, spec.scale) for h in (0, 1)]
-            da, db = (np.asarray(denoise(b)) for b in bufs)
-            err = _full_size(ad.halves_error(da, db), spec.scale, height, width)
-        else:
-            whole = {name: half_sum[0][name] + half_sum[1][name] for name in map_names}
-            b = _buffers_from(whole, n_all, s2, camera or {}, spec.scale)
-            err = _full_size(ad.relative_variance(b.color, b.color_var, denoised=np.asarray(denoise(b))),
-                             spec.scale, height, width)
-        err = np.asarray(jax.block_until_ready(ad.smooth(err, size=smooth)), np.float64)
-        floor = max(1, int(floor_fraction * budgets[k] / npix))
-        counts = ad.allocate(err, n_all, budgets[k], floor=floor, cap=cap, cost=cost if cost_aware else None,
-                             base=n0 - a0 if k == passes - 1 else 0, budget=budget)
-        info["map_seconds"] += time.perf_counter() - t0
-    t0 = time.perf_counter()
-    frame = _pool(map_groups, frame_groups, names, weights)
-    info["render_seconds"] += time.perf_counter() - t0    # the frame's assembly, as a uniform render's
+            if cost_aware and k == 0:                     # a sample's cost: the map samples' mean path length
+                verts = (moments[0][VERTICES][0] + moments[1][VERTICES][0])[..., 0] / a0
+                cost = np.maximum(np.asarray(ad.smooth(verts, size=smooth), np.float64), 1.0)
+            if has_map:                                   # the map's halves: fixed weight, and the map's data
+                sums, sq = zeros(), zeros()
+                for h in (0, 1):
+                    for name in names:
+                        s, q = moments[h][name]
+                        sums[name] += s
+                        sq[name] += q
+                        if name in half_sum[h]:
+                            half_sum[h][name] += s
+                    half_n[h] += parts[h]
+                map_groups.append((parts[0] + parts[1], sums, sq))
+            if frame is not None:                         # pooled by count, never read by a map
+                frame_groups.append((parts[frame], {n: moments[frame][n][0] for n in names},
+                                     {n: moments[frame][n][1] for n in names}))
+            info["pass_counts"].append({"min": int(counts.min()), "max": int(counts.max()),
+                                        "mean": float(counts.mean())})
+            if k == passes:
+                break
+            t0 = time.perf_counter()
+            s2 = _pooled_variance(map_groups, map_names)
+            n_all = half_n[0] + half_n[1]
+            if spec.method is None:
+                err = ad.relative_variance((half_sum[0]["color"] + half_sum[1]["color"]) / n_all[..., None],
+                                           s2["color"] / n_all[..., None])
+            elif spec.estimator == "halves":
+                bufs = [_buffers_from(half_sum[h], half_n[h], s2, camera or {}, spec.scale) for h in (0, 1)]
+                da, db = (np.asarray(denoise(b)) for b in bufs)
+                err = _full_size(ad.halves_error(da, db), spec.scale, height, width)
+            else:
+                whole = {name: half_sum[0][name] + half_sum[1][name] for name in map_names}
+                b = _buffers_from(whole, n_all, s2, camera or {}, spec.scale)
+                err = _full_size(ad.relative_variance(b.color, b.color_var, denoised=np.asarray(denoise(b))),
+                                 spec.scale, height, width)
+            err = np.asarray(jax.block_until_ready(ad.smooth(err, size=smooth)), np.float64)
+            floor = max(1, int(floor_fraction * budgets[k] / npix))
+            counts = ad.allocate(err, n_all, budgets[k], floor=floor, cap=cap, cost=cost if cost_aware else None,
+                                 base=n0 - a0 if k == passes - 1 else 0)
+            info["map_seconds"] += time.perf_counter() - t0
+        frame = _pool(map_groups, frame_groups, names, weights)
+    info["compile_seconds"] = timer.compile_seconds
+    info["render_seconds"] = max(0.0, timer.seconds - info["map_seconds"])
     return frame, info
 
 

@@ -66,10 +66,8 @@ def smooth(error, *, size: int = SMOOTH):
     return box_mean(e[..., None], size=size)[..., 0]
 
 
-def allocate(error, counts, total: int, *, floor: int = 1, cap: float = 8.0, cost=None, base=0,
-             budget: str = "samples") -> np.ndarray:
-    """Integer samples per pixel for the next pass, (H, W) int64 summing to exactly ``total``
-    (``budget="samples"``, the default).
+def allocate(error, counts, total: int, *, floor: int = 1, cap: float = 8.0, cost=None, base=0) -> np.ndarray:
+    """Integer samples per pixel for the next pass, (H, W) int64 summing to exactly ``total``.
 
     ``error``: the estimated relative error of each pixel now (H, W); ``counts``: the samples each
     pixel has so far (H, W). A pixel whose error falls as ``e_i n_i / N`` with ``N`` samples gets
@@ -86,12 +84,6 @@ def allocate(error, counts, total: int, *, floor: int = 1, cap: float = 8.0, cos
     this pass's, pooled with them by count (`data_gen.adaptive`'s frame part of the pilot). The pass
     then tops the pixels up: ``c_i = clip(lam sqrt(e_i n_i / t_i) - base_i, floor, cap m)``, the
     least summed error for ``base_i + c_i`` samples (water-filling).
-
-    ``budget="time"`` (needs ``cost``): the pass costs what ``total`` samples spread evenly would,
-    ``sum c_i t_i = total * mean(t)``, instead of holding ``total`` samples: a map that favours
-    expensive pixels gets fewer samples in all, one that favours cheap pixels more (the integer
-    counts then sum to the nearest integer of the real-valued solution's total). Floor and cap stay
-    relative to ``total / npix``.
     """
     e = np.asarray(error, np.float64)
     n = np.asarray(counts, np.float64)
@@ -108,19 +100,12 @@ def allocate(error, counts, total: int, *, floor: int = 1, cap: float = 8.0, cos
     hi = max(float(cap) * total / npix, floor + 1.0)
     if hi * npix < total:
         raise JaxdenoiseError(f"allocate: cap {cap} is below the pass's mean {total / npix}")
-    if budget not in ("samples", "time"):
-        raise JaxdenoiseError(f"allocate: budget is {budget!r}; expected 'samples' or 'time'")
-    if budget == "time" and cost is None:
-        raise JaxdenoiseError("allocate: budget='time' needs the per-pixel cost")
     s = e * np.maximum(n, 1.0)
-    w = np.ones(npix)                          # what a sample counts toward the budget
     if cost is not None:
         t = np.asarray(cost, np.float64)
         if t.shape != e.shape or not np.all(np.isfinite(t)) or np.any(t <= 0):
             raise JaxdenoiseError(f"allocate: cost must be finite and positive, shape {e.shape}")
         s = s / t
-        if budget == "time":
-            w = (t / t.mean()).reshape(-1)
     s = np.sqrt(s).reshape(-1)
     b = np.asarray(base, np.float64)
     if b.ndim and b.shape != e.shape or not np.all(np.isfinite(b)) or np.any(b < 0):
@@ -129,15 +114,13 @@ def allocate(error, counts, total: int, *, floor: int = 1, cap: float = 8.0, cos
     if not np.any(s > 0):
         s = np.ones_like(s)
     lo_lam, hi_lam = 0.0, ((hi + b.max()) / s[s > 0].min()) * 2
-    for _ in range(100):                       # bisection on lam: sum(w clip(lam s - b)) is monotone in it
+    for _ in range(100):                       # bisection on lam: sum(clip(lam s - b)) is monotone in it
         lam = 0.5 * (lo_lam + hi_lam)
-        if (w * np.clip(lam * s - b, floor, hi)).sum() < total:
+        if np.clip(lam * s - b, floor, hi).sum() < total:
             lo_lam = lam
         else:
             hi_lam = lam
     c = np.clip(hi_lam * s - b, floor, hi)
-    if budget == "time":
-        total = max(int(round(c.sum())), floor * npix)
     c *= total / c.sum()                       # exact total before rounding (bisection tolerance)
     out = np.floor(c).astype(np.int64)
     out = np.maximum(out, floor)

@@ -53,24 +53,6 @@ def test_allocate_tops_up_over_the_samples_a_pixel_already_has():
             ad.allocate(err, np.ones((1, 5)), 700, base=bad)
 
 
-def test_allocate_can_hold_the_time_of_a_pass_instead_of_its_samples():
-    """``budget="time"``: the counts cost (by ``cost``) what ``total`` samples spread evenly would;
-    equal costs give the sample budget's counts."""
-    err = np.array([[1.0, 1.0, 16.0, 16.0]])
-    t = np.array([[1.0, 1.0, 4.0, 4.0]])
-    c = ad.allocate(err, np.ones((1, 4)), 400, floor=0, cap=100.0, cost=t, budget="time")
-    assert abs(float((c * t).sum()) - 400 * t.mean()) <= t.max()            # the time of 400 even samples
-    np.testing.assert_allclose(c[0, 2] / c[0, 0], 2.0, rtol=0.02)           # sqrt(16 / 4) : sqrt(1 / 1)
-    s = ad.allocate(err, np.ones((1, 4)), 400, floor=0, cap=100.0, cost=t)
-    assert s.sum() == 400 and c.sum() < 400                                # the dear pixels cost samples
-    same = np.ones((1, 4))
-    np.testing.assert_array_equal(ad.allocate(err, np.ones((1, 4)), 400, cost=same, budget="time"),
-                                  ad.allocate(err, np.ones((1, 4)), 400, cost=same))
-    for kw, match in [(dict(budget="time"), "needs the per-pixel cost"), (dict(budget="money"), "expected 'samples'")]:
-        with pytest.raises(JaxdenoiseError, match=match):
-            ad.allocate(err, np.ones((1, 4)), 400, **kw)
-
-
 @pytest.mark.parametrize("bad, match", [
     (dict(error=np.full((2, 2), np.nan)), "finite"),
     (dict(error=-np.ones((2, 2))), "non-negative"),
@@ -116,11 +98,6 @@ def test_specs_and_plans_are_checked():
                        ("oidn:halves/0", "positive integer"), ("oidn/x", "positive integer")]:
         with pytest.raises(JaxdenoiseError, match=match):
             parse_spec(bad)
-    from data_gen.adaptive import render_adaptive
-
-    for kw in (dict(budget="time", cost_aware=False), dict(budget="money")):
-        with pytest.raises(JaxdenoiseError, match="budget is"):
-            render_adaptive(None, spp=16, **kw)
     assert plan(16, 2, None, 10) == (4, [60, 60])
     assert plan(4, 1, None, 3) == (2, [6])
     with pytest.raises(JaxdenoiseError, match="pilot has 4 spp"):
