@@ -162,9 +162,10 @@ def render_adaptive(scene, *, spp: int, adaptive: str | Spec = "relvar", passes:
 
     Returns ``(buffers, info)``: ``buffers`` as `data_gen.render.moments_to_buffers` returns them
     (``color``, ``color_var``, the recorded features and their variances) plus ``spp_map`` (H, W, 1);
-    ``info`` the plan, the pass weights, and the seconds spent rendering (the passes, Dr.Jit
-    compilation apart, and the frame's pooling) and making maps (the map's halves of the buffers it
-    reads, its denoiser's calls, the estimate and the allocation). ``denoise(buffers) -> image`` is
+    ``info`` the plan, the pass weights, and the seconds spent making maps (the map's halves of the
+    buffers it reads, its denoiser's calls, the estimate and the allocation) and rendering (all the
+    rest: the passes, the bookkeeping between them and the frame's pooling; Dr.Jit's one-off kernel
+    compilation apart, in ``compile_seconds``). ``denoise(buffers) -> image`` is
     the map's denoiser (``jaxdenoise.load(method)`` when None and the spec names one); ``camera``
     the frame's camera matrices (RAE reads them).
     ``map_spp``: the pilot's samples per pixel that feed the map (default `map_split`: half the

@@ -116,8 +116,8 @@ def run(args) -> dict:
             rec["uniform"][str(s)] = _mean_runs(runs)
         for spec in specs:
             sp = parse_spec(spec)
-            if sp.method is not None and sp.method not in dn:
-                dn_maps.setdefault(sp.method, jaxdenoise.load(sp.method))   # a map's denoiser beside METHODS
+            if sp.method is not None and sp.method not in dn and sp.method not in dn_maps:
+                dn_maps[sp.method] = jaxdenoise.load(sp.method)   # a map's denoiser beside METHODS
             mapper = None if sp.method is None else dn.get(sp.method) or dn_maps[sp.method]
             # warm-up (not recorded): the map's XLA programs compile once per frame size
             render_adaptive(loaded, spp=budgets[0], adaptive=sp, passes=args.passes, map_spp=map_spp[budgets[0]],
