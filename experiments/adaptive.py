@@ -14,7 +14,8 @@ and the scene library's evaluation split, ``--width`` pixels wide (default 256),
 4096-spp references.
 
     python experiments/adaptive.py [--procedural 4] [--library 4] [--width 256] [--budgets 4,16,64] [--no-cost-aware]
-                                   [--map-spp N|pilot]
+                                   [--map-spp N|pilot] [--specs relvar,oidn-fast:halves/2,...] [--renders R]
+                                   [--ref-cache DIR]
 
 Writes docs/results/adaptive/adaptive.json, adaptive.md and error_vs_time.png.
 """
