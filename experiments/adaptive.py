@@ -161,11 +161,11 @@ def _reference(cache, key: str, render):
     if path.exists():
         with np.load(path) as z:
             return z["ref"], float(z["noise"])
+    from jaxdenoise.fsutil import atomic_path
+
     ref, noise = render()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp.npz")
-    np.savez(tmp, ref=ref, noise=noise)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        np.savez(tmp, ref=ref, noise=noise)
     return ref, noise
 
 
