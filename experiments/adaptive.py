@@ -269,6 +269,7 @@ def page(res: dict) -> str:
                          f"{r['wins_equal_time']}/{r['scenes']} | "
                          f"{r['outside_uniform_range']} | {num(r['adaptive_seconds'], '.3f')} |")
         lines.append("")
+    lines += _by_scene_set(res)
     lines += ["## Per scene: render and denoise seconds", "",
               "| scene | size | uniform 16 spp render s | " + " | ".join(f"{m} s" for m in res["methods"][1:])
               + " | reference RelMSE (halves) |", "|---|---|---:|" + "---:|" * (len(res["methods"]) - 1) + "---:|"]
@@ -278,6 +279,30 @@ def page(res: dict) -> str:
                      + f" | {num(sc['ref_relmse_halves'], '.2e')} |")
     lines.append("")
     return "\n".join(lines)
+
+
+def _by_scene_set(res: dict) -> list[str]:
+    """The equal-time gains (mean, geo, wins) over the library's scenes (hand-written, built unlike
+    the procedural families) and over the procedural draws apart."""
+    sets = {"library": [s for s in res["scenes"] if s["scene"].startswith("library:")],
+            "procedural": [s for s in res["scenes"] if not s["scene"].startswith("library:")]}
+    if not all(sets.values()):
+        return []
+    rows = {name: {(r["spec"], r["spp"], r["method"]): r for r in summarize(dict(res, scenes=sc))}
+            for name, sc in sets.items()}
+    lines = ["## Equal time by scene set", "",
+             "The equal-time gain (mean; geo; wins) over the library's scenes and over the procedural draws apart.", "",
+             "| map | spp | method | library | procedural |", "|---|---:|---|---|---|"]
+    for spec in res["specs"]:
+        for bud in res["budgets"]:
+            for m in res["methods"]:
+                if m == "input":
+                    continue
+                cell = lambda r: (f"{num(r['gain_equal_time'], '.3f')}; "  # noqa: E731
+                                  f"{num(r['geo_gain_equal_time'], '.3f')}; {r['wins_equal_time']}/{r['scenes']}")
+                lines.append(f"| `{spec}` | {bud} | {m} | {cell(rows['library'][(spec, bud, m)])} | "
+                             f"{cell(rows['procedural'][(spec, bud, m)])} |")
+    return lines + [""]
 
 
 def plot_adaptive(res: dict, path: Path) -> None:
