@@ -54,6 +54,9 @@ shift for offsets not yet connected, the shared vertex's BSDF for those connecte
 the base path's own values for those sharing its tail (or dead), which after the first bounces are
 most of them. The three traces are one function with the other states' masks set to a literal False
 (`_state_masks`); ``branch_states=False`` traces it once for every state, bit-identical (tested).
+Since 0.9.9 the offsets' light samples on an environment reuse the base's density and radiance (same
+direction), and a caller whose primal is the base image leaves the pair estimates out
+(``pair_estimates=False``): together 8-10 % of a frame on the bench's outdoor scene.
 
 Supported BSDFs: what the procedural families and our XML scenes use (diffuse, rough and smooth
 conductor, rough and smooth plastic, rough and smooth dielectric). A half-vector copy through a rough
@@ -150,14 +153,15 @@ def _direction_sample(ds, *, p, d, dist):
 def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, settings: PathSettings,
               shift: ShiftSettings = ShiftSettings(), roughness: RoughnessLookup | None = None,
               separate_emission: bool = True, record: frozenset[str] = frozenset(),
-              branch_states: bool = True) -> dict:
+              branch_states: bool = True, pair_estimates: bool = True) -> dict:
     """Trace one base path per lane of ``ray`` and shift it to the four ``offset_rays`` (camera rays
     through the `NEIGHBOURS`, same camera samples; ``*_weight`` the camera weights).
 
     Returns a dict of per-lane Dr.Jit values: ``color`` (the base path's radiance, exactly what
     `data_gen.integrator.trace` returns for the same sampler and ray), and per neighbour ``k``
     ``grad[k]`` (this lane's share of ``I[neighbour] - I[pixel]``), ``main[k]`` and ``shifted[k]``
-    (its shares of the MIS estimates of its own pixel and of the neighbour), ``flags`` (UInt32:
+    (its shares of the MIS estimates of its own pixel and of the neighbour; only with
+    ``pair_estimates``: they make the G-PT primal and nothing else), ``flags`` (UInt32:
     bits ``(RECONNECTED | HALF_VECTOR | FAILED) << (3 k)``) and ``emission`` (what a surface emitter
     seen directly gives the base path: the depth-0 part of ``color`` where the camera ray hits a shape).
 
@@ -178,6 +182,10 @@ def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, setti
     docstring, "Cost"); False traces it once for every state and every lane, the tracer before 0.9.3,
     with the same outputs bit for bit (the reference the branches are tested against; the bench's
     "before" column).
+
+    ``pair_estimates`` (True): trace ``main`` and ``shifted``; False leaves them out of the loop (24 fewer
+    values carried per lane and the updates of them; 2-4 % of a frame on the bench's outdoor scene), for a
+    caller whose primal is the base image. ``color``, ``grad`` and the rest are the same bit for bit.
     """
     import drjit as dr
     import mitsuba as mi
@@ -225,9 +233,11 @@ def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, setti
             g0, pm0, ps0 = 0.5 * (c_y0 - c_x0), 0.5 * c_x0, 0.5 * c_y0
         offs.append(dict(
             st=dr.select(alive, UInt32(NOT_CONNECTED), UInt32(DEAD)), si=si_y, yp=mi.Point3f(0.0),
-            beta=beta_y, R=Float(1.0), g=g0, pm=pm0, ps=ps0,
+            beta=beta_y, R=Float(1.0), g=g0,
             fl=dr.select(valid0 & ~si_y.is_valid(), UInt32(FAILED << (3 * k)), UInt32(0)),
         ))
+        if pair_estimates:
+            offs[-1].update(pm=pm0, ps=ps0)
     # Features of the base path (as data_gen.integrator.trace): the feature vertex is the first smooth
     # one; ``pending`` marks a reached vertex the loop will not visit (the path's last allowed vertex),
     # whose features are recorded after the loop.
@@ -253,6 +263,16 @@ def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, setti
                 true_fn=lambda *b: fn(*b, (RECENTLY_CONNECTED,)), false_fn=lambda *b: fn(*b, (CONNECTED,)),
                 label="data_gen.gpt.recent"),
             label="data_gen.gpt.shift")
+
+    def add_pair(o, w, c_x, c_y):
+        # A pair contribution: the lane's gradient share and, with pair_estimates, its shares of the MIS
+        # estimates of its own pixel (``pm``) and of the neighbour (``ps``).
+        out = dict(g=o["g"] + w * (c_y - c_x))
+        if pair_estimates:
+            out.update(pm=o["pm"] + w * c_x, ps=o["ps"] + w * c_y)
+        return out
+
+    sums = ("g", "pm", "ps") if pair_estimates else ("g",)
 
     def body(s, smp):
         ray, si, depth, active = s["ray"], s["si"], s["depth"], s["active"]
@@ -283,7 +303,7 @@ def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, setti
         c_x = dr.select(reaches, beta * bsdf_val * em_weight, 0.0)
         rough_nee = roughness(bsdf, ev) > thr
 
-        def nee_shift(o, g, pm, ps, states):
+        def nee_shift(o, states):
             # An offset's share of the light sample; ``states``: the offset states the traced code handles
             # (a lane in another one is treated as DEAD: see `_state_masks`).
             st, R = o["st"], o["R"]
@@ -308,10 +328,18 @@ def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, setti
                             _reconnection_jacobian(dr.dot(ds_em.n, ds_y.d), dist2_y, dr.dot(ds_em.n, ds_em.d), dist2_x))
             # A delta light (point or directional) is sampled with the same discrete probability
             # from any vertex; Mitsuba reports no direction density for it.
-            a_y = dr.select(ds_em.delta, ds_em.pdf,
-                            scene.pdf_emitter_direction(si_y, ds_y, recon & front_y & ~ds_em.delta))
+            # An environment (an infinite emitter that is not a delta: envmap, constant) has a direction
+            # density and a radiance that depend on the direction alone, and the offset keeps the base's
+            # direction: the offset takes the base's sample values instead of looking them up again (5 % of
+            # a frame on the bench's outdoor scene; ``em_weight * pdf`` is the radiance). They equal the
+            # lookups within Mitsuba's own round trip (tests/test_gpt.py: an envmap's density to 2e-4
+            # relative near its poles, the radiance to 1e-5); a lookup from the base's vertex would differ
+            # from its own sample the same way.
+            env = inf & ~ds_em.delta
+            a_y = dr.select(ds_em.delta | env, ds_em.pdf,
+                            scene.pdf_emitter_direction(si_y, ds_y, recon & front_y & ~ds_em.delta & ~env))
             a_y = dr.select(front_y, a_y, 0.0)
-            le_y = scene.eval_emitter_direction(si_y, ds_y, recon & front_y)
+            le_y = dr.select(env, em_weight * ds_em.pdf, scene.eval_emitter_direction(si_y, ds_y, recon & front_y & ~env))
             occ_y = scene.ray_test(si_y.spawn_ray_to(ds_y.p), recon & front_y)
             # Guard: a light point on the offset vertex itself has no direction (0/0 Jacobian).
             vis_y = recon & front_y & ~occ_y & (inf | point | (dist2_y > _MIN_DIST2)) & dr.isfinite(jac)
@@ -328,11 +356,11 @@ def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, setti
                                     dr.select(notc, 0.0, dr.rcp(den_x)))))
             w = dr.select(ev, w, 0.0)
             c_y = dr.select(ev & (st != DEAD), c_y, 0.0)
-            return g + w * (c_y - c_x), pm + w * c_x, ps + w * c_y
+            return add_pair(o, w, c_x, c_y)
 
         for o in offs:
-            o["g"], o["pm"], o["ps"] = by_state(
-                o["st"], ev, lambda g, pm, ps, states, o=o: nee_shift(o, g, pm, ps, states), (o["g"], o["pm"], o["ps"]))
+            o.update(by_state(o["st"], ev, lambda acc, states, o=o: nee_shift({**o, **acc}, states),
+                              ({k: o[k] for k in sums},)))
 
         # ---------------- BSDF sampling and Russian roulette (as trace) ----------------
         s1 = smp.next_1d(active)
@@ -454,7 +482,7 @@ def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, setti
             new_st = dr.select(conn | recent_ok, UInt32(CONNECTED),
                                dr.select(recon_ok, UInt32(RECENTLY_CONNECTED),
                                          dr.select(hv_ok & ~end, UInt32(NOT_CONNECTED), UInt32(DEAD))))
-            return dict(g=o["g"] + w * (c_y - c_x), pm=o["pm"] + w * c_x, ps=o["ps"] + w * c_y, beta=beta_y, R=R_n,
+            return dict(**add_pair(o, w, c_x, c_y), beta=beta_y, R=R_n,
                         st=dr.select(cont, new_st, st), yp=dr.select(recon_ok, si_y.p, o["yp"]),
                         si=dr.select(hv_ok, si_yn, si_y),
                         fl=(o["fl"] | dr.select(recon_ok, UInt32(RECONNECTED << (3 * k)), 0)
@@ -475,9 +503,10 @@ def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, setti
 
     state = dr.while_loop((state, sampler), lambda s, smp: s["active"], body, label="data_gen.gpt")[0]
     offs = state["offs"]
-    out = dict(color=state["L"] * w_x, grad=[o["g"] * w_x for o in offs], main=[o["pm"] * w_x for o in offs],
-               shifted=[o["ps"] * w_x for o in offs], emission=e_x0 * w_x,
+    out = dict(color=state["L"] * w_x, grad=[o["g"] * w_x for o in offs], emission=e_x0 * w_x,
                flags=offs[0]["fl"] | offs[1]["fl"] | offs[2]["fl"] | offs[3]["fl"])
+    if pair_estimates:
+        out.update(main=[o["pm"] * w_x for o in offs], shifted=[o["ps"] * w_x for o in offs])
     if record:
         # The last allowed vertex: trace visits it (no light sample there: no visibility).
         si, pending = state["si"], state["pending"]
