@@ -890,6 +890,8 @@ STUDIES: dict[str, tuple[str, str]] = {
     "data_gen_gradient_099/before/data_gen_gradient.md": ("bench_gradient_cost",
                                                           "data_gen_gradient_099/before/data_gen_gradient.json"),
     "data_gen_gradient_099/data_gen_gradient.md": ("bench_gradient_cost", "data_gen_gradient_099/data_gen_gradient.json"),
+    "data_gen_gradient_099/rerun/data_gen_gradient.md": ("bench_gradient_cost",
+                                                         "data_gen_gradient_099/rerun/data_gen_gradient.json"),
     "demc_rates/recipes.md": ("demc_recipes", "demc_rates/recipes.json"),
     "demc_rates/level3/recipes.md": ("demc_recipes", "demc_rates/level3/recipes.json"),
     "data_gen.md": ("bench_data_gen", "data_gen.json"),
