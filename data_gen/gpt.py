@@ -56,7 +56,8 @@ most of them. The three traces are one function with the other states' masks set
 (`_state_masks`); ``branch_states=False`` traces it once for every state, bit-identical (tested).
 Since 0.9.9 the offsets' light samples on an environment reuse the base's density and radiance (same
 direction), and a caller whose primal is the base image leaves the pair estimates out
-(``pair_estimates=False``): together 8-10 % of a frame on the bench's outdoor scene.
+(``pair_estimates=False``): together 5-10 % of a frame on the bench's outdoor scene (with the per-pixel
+sums gathered per buffer in `data_gen.gradient`).
 
 Supported BSDFs: what the procedural families and our XML scenes use (diffuse, rough and smooth
 conductor, rough and smooth plastic, rough and smooth dielectric). A half-vector copy through a rough
@@ -339,7 +340,8 @@ def trace_gpt(scene, sampler, ray, weight, offset_rays, offset_weights, *, setti
             a_y = dr.select(ds_em.delta | env, ds_em.pdf,
                             scene.pdf_emitter_direction(si_y, ds_y, recon & front_y & ~ds_em.delta & ~env))
             a_y = dr.select(front_y, a_y, 0.0)
-            le_y = dr.select(env, em_weight * ds_em.pdf, scene.eval_emitter_direction(si_y, ds_y, recon & front_y & ~env))
+            le_y = dr.select(env, em_weight * ds_em.pdf,
+                             scene.eval_emitter_direction(si_y, ds_y, recon & front_y & ~env))
             occ_y = scene.ray_test(si_y.spawn_ray_to(ds_y.p), recon & front_y)
             # Guard: a light point on the offset vertex itself has no direction (0/0 Jacobian).
             vis_y = recon & front_y & ~occ_y & (inf | point | (dist2_y > _MIN_DIST2)) & dr.isfinite(jac)

@@ -489,6 +489,26 @@ bind("gradnet-shipped-gpt", gradnet_eval_pairs, "gradnet weights",
       ("0.9.5 (G-PT data, last step, loss-selected)", "gradnet_primal/test256_gpt4_shipped.json")], True)
 
 
+# issue 35 item 6: the scene library's evaluation scenes with G-PT gradients (built differently from the
+# training family), the 0.9.5 weights
+bind("gradnet-library", gradnet_eval_pairs, "gradnet weights",
+     [("0.9.5 (shipped)", "gradnet_library/eval_gpt.json")], True)
+
+
+@renderer("gradnet-library-frames")
+def _gradnet_library_frames(results: Path) -> str:
+    """The library report frame by frame: RelMSE of the input, the solvers, GradNet with and without
+    Eq. 13's post-process (best of the four methods in bold)."""
+    d = load(results, "gradnet_library/eval_gpt.json")
+    methods = ["input", "poisson-l2", "poisson-l1", "gradnet"]
+    rows = []
+    for r in sorted(d["rows"], key=lambda r: (int(r["spp"]), r["shot"])):
+        vals = [r[m]["relmse"] for m in methods]
+        rows.append([str(r["spp"]), r["shot"]] + bold_min([num(v, ".4g") for v in vals], vals)
+                    + [num(r["gradnet-no-postprocess"]["relmse"], ".4g")])
+    return table(["spp", "frame", *methods, "gradnet, no post-process"], rows, "ll" + "r" * 5)
+
+
 @renderer("gradnet-remade")
 def _gradnet_remade(results: Path) -> str:
     """The re-rendered frames and the re-made run against the first making of each, frame by frame:
@@ -889,7 +909,8 @@ STUDIES: dict[str, tuple[str, str]] = {
                                                       "data_gen_gradient_rerun2/data_gen_gradient.json"),
     "data_gen_gradient_099/before/data_gen_gradient.md": ("bench_gradient_cost",
                                                           "data_gen_gradient_099/before/data_gen_gradient.json"),
-    "data_gen_gradient_099/data_gen_gradient.md": ("bench_gradient_cost", "data_gen_gradient_099/data_gen_gradient.json"),
+    "data_gen_gradient_099/data_gen_gradient.md": ("bench_gradient_cost",
+                                                   "data_gen_gradient_099/data_gen_gradient.json"),
     "data_gen_gradient_099/rerun/data_gen_gradient.md": ("bench_gradient_cost",
                                                          "data_gen_gradient_099/rerun/data_gen_gradient.json"),
     "demc_rates/recipes.md": ("demc_recipes", "demc_rates/recipes.json"),

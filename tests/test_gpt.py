@@ -388,7 +388,8 @@ def test_an_environment_gives_every_vertex_the_same_density_and_radiance(env):
     other = dr.zeros(mi.SurfaceInteraction3f, n)
     other.p = it.p + mi.Vector3f(0.7, -0.3, float(u[5, 0]))
     ds_o = dr.zeros(mi.DirectionSample3f, n)
-    ds_o.p, ds_o.n, ds_o.uv, ds_o.d, ds_o.dist = other.p + (ds.p - it.p), ds.n, ds.uv, ds.d, ds.dist  # as the tracer's copy
+    # as the tracer's copy (`data_gen.gpt`): the base sample's fields, the point moved with the vertex
+    ds_o.p, ds_o.n, ds_o.uv, ds_o.d, ds_o.dist = other.p + (ds.p - it.p), ds.n, ds.uv, ds.d, ds.dist
     ds_o.time, ds_o.delta, ds_o.emitter, ds_o.pdf = ds.time, ds.delta, ds.emitter, ds.pdf
 
     def lookups(ref, d):
