@@ -489,6 +489,9 @@ bind("gradnet-shipped-gpt", gradnet_eval_pairs, "gradnet weights",
       ("0.9.5 (G-PT data, last step, loss-selected)", "gradnet_primal/test256_gpt4_shipped.json")], True)
 
 
+# issue 35 item 6: all 10 of those test scenes rendered (0.9.9), the shipped weights
+bind("gradnet-test256-10", gradnet_eval_pairs, "gradnet weights",
+     [("0.9.5 (shipped), 10 frames", "gradnet_primal/test256_gpt10_shipped.json")], True)
 # issue 35 item 6: the scene library's evaluation scenes with G-PT gradients (built differently from the
 # training family), the 0.9.5 weights
 bind("gradnet-library", gradnet_eval_pairs, "gradnet weights",
