@@ -293,13 +293,15 @@ def _by_scene_set(res: dict) -> list[str]:
     lines = ["## Equal time by scene set", "",
              "The equal-time gain (mean; geo; wins) over the library's scenes and over the procedural draws apart.", "",
              "| map | spp | method | library | procedural |", "|---|---:|---|---|---|"]
+    def cell(r):
+        return (f"{num(r['gain_equal_time'], '.3f')}; {num(r['geo_gain_equal_time'], '.3f')}; "
+                f"{r['wins_equal_time']}/{r['scenes']}")
+
     for spec in res["specs"]:
         for bud in res["budgets"]:
             for m in res["methods"]:
                 if m == "input":
                     continue
-                cell = lambda r: (f"{num(r['gain_equal_time'], '.3f')}; "  # noqa: E731
-                                  f"{num(r['geo_gain_equal_time'], '.3f')}; {r['wins_equal_time']}/{r['scenes']}")
                 lines.append(f"| `{spec}` | {bud} | {m} | {cell(rows['library'][(spec, bud, m)])} | "
                              f"{cell(rows['procedural'][(spec, bud, m)])} |")
     return lines + [""]
@@ -354,6 +356,8 @@ def main(argv=None) -> None:
     ap.add_argument("--ref-spp", type=int, default=4096)
     ap.add_argument("--out", default=str(OUT))
     args = ap.parse_args(argv)
+    if args.renders < 1:
+        ap.error(f"--renders: expected a positive integer, got {args.renders}")
     args.argv = list(sys.argv[1:] if argv is None else argv)
     args.load_start = os.getloadavg()[0]
     res = run(args)
