@@ -6,6 +6,8 @@ from scratch, and the loss's per-pixel scale as a fine-tune of the shipped weigh
     python experiments/demc_recipes.py finetune --level-weight 4 --steps 700 --out runs/demc_level
     python experiments/demc_recipes.py finetune --level-weight 4 --level-pool 8 --level-scale output \
         --steps 400 --validate-every 50 --out runs/demc_level3
+    python experiments/demc_recipes.py finetune --level-weight 4 --seeds 3 --steps 3000 --validate-every 100 \
+        --out runs/demc_stage3
 
 Both train on ``--data`` (default ``runs/demc_rates_data``: the scene library's training scenes and
 40 procedural ``mixed`` scenes at 1/4/16/64 spp, jaxdenoise/weights/demc/README.md) and validate on
@@ -14,7 +16,8 @@ of the validation RelMSE (`jaxdenoise.train`). ``eq3`` trains ``skip_init`` "dec
 "all" ([I, I, I]) from a random init, one run per seed, the same crops for both readings (the seed
 draws the crops) at Adam ``--lr`` (5e-4: the rate of the first from-scratch DEMC run,
 docs/methods/demc.md); ``finetune`` starts from ``--init`` with the config's ``loss_scale`` and
-``level_weight`` replaced, at the method's own rate (1e-4).
+``level_weight`` replaced, at the method's own rate (1e-4), one run per seed (a seed other than the
+earlier stages' 0 draws crops they did not see).
 Each run resumes from its checkpoint when started again; every run's summary goes to
 ``OUT/summary.json``.
 
@@ -147,7 +150,8 @@ def _run(method, data, out: Path, args, **fields) -> dict:
                                  validate_every=args.validate_every, select="geomean", progress=False, **fields)
     t = time.perf_counter()
     s = train(method, data, out, run)
-    rec = {"steps": s["steps_done"], "seconds": time.perf_counter() - t, "final_loss": s["final_loss"],
+    rec = {"steps": s["steps_done"], "seed": run.seed, "seconds": time.perf_counter() - t,
+           "final_loss": s["final_loss"],
            "best_step": s["best"]["step"], "best_geomean": s["best"]["relmse_geomean"],
            "config": {f: getattr(method.config, f) for f in ("skip_init", "loss_scale", "level_weight", "level_pool",
                                                              "level_scale", "exposure")}}
@@ -165,7 +169,8 @@ def main() -> None:
     ap.add_argument("--out", required=True)
     ap.add_argument("--steps", type=int, default=250)
     ap.add_argument("--validate-every", type=int, default=50)
-    ap.add_argument("--seeds", default="0,1")
+    ap.add_argument("--seeds", default=None, help="comma-separated seeds (the init and the crop order), one run "
+                    "each (default: 0,1 for eq3, 0 for finetune; a finetune's run name gains _sN for a seed N > 0)")
     ap.add_argument("--lr", type=float, default=5e-4, help="eq3: Adam's step size (constant)")
     ap.add_argument("--init", default="jaxdenoise/weights/demc")
     ap.add_argument("--loss-scale", default="reference", choices=("reference", "output"))
@@ -184,21 +189,24 @@ def main() -> None:
     summary: dict = {"what": args.what, "data": args.data, "val_data": args.val_data, "steps": args.steps, "runs": {}}
     if (out / "summary.json").exists():  # fine-tunes of one group run one after another into one folder
         summary["runs"] = json.loads((out / "summary.json").read_text())["runs"]
+    seeds = [int(s) for s in (args.seeds or ("0,1" if args.what == "eq3" else "0")).split(",")]
     if args.what == "eq3":
-        for seed in (int(s) for s in args.seeds.split(",")):
+        for seed in seeds:
             for reading in ("decoder", "all"):
                 name = f"{reading}_s{seed}"
                 summary["runs"][name] = _run(base.with_config(skip_init=reading), data, out / name, args, seed=seed,
                                              learning_rate=args.lr)
                 write_json(out / "summary.json", summary)
     else:
-        name = f"scale_{args.loss_scale}" + (f"_level{args.level_weight:g}" if args.level_weight else "")
+        stem = f"scale_{args.loss_scale}" + (f"_level{args.level_weight:g}" if args.level_weight else "")
         if args.level_weight and (args.level_pool, args.level_scale) != (8, "reference"):
-            name += f"_pool{args.level_pool}_{args.level_scale}"
-        summary["runs"][name] = _run(base.with_config(loss_scale=args.loss_scale, level_weight=args.level_weight,
-                                                      level_pool=args.level_pool, level_scale=args.level_scale),
-                                     data, out / name, args, init_from=args.init)
-        write_json(out / "summary.json", summary)
+            stem += f"_pool{args.level_pool}_{args.level_scale}"
+        for seed in seeds:
+            name = stem + (f"_s{seed}" if seed else "")
+            summary["runs"][name] = _run(base.with_config(loss_scale=args.loss_scale, level_weight=args.level_weight,
+                                                          level_pool=args.level_pool, level_scale=args.level_scale),
+                                         data, out / name, args, init_from=args.init, seed=seed)
+            write_json(out / "summary.json", summary)
 
 
 if __name__ == "__main__":
