@@ -171,7 +171,8 @@ def main() -> None:
     ap.add_argument("--validate-every", type=int, default=50)
     ap.add_argument("--seeds", default=None, help="comma-separated seeds (the init and the crop order), one run "
                     "each (default: 0,1 for eq3, 0 for finetune; a finetune's run name gains _sN for a seed N > 0)")
-    ap.add_argument("--lr", type=float, default=5e-4, help="eq3: Adam's step size (constant)")
+    ap.add_argument("--lr", type=float, default=None, help="Adam's step size (default: 5e-4 for eq3, the method's "
+                    "own 1e-4 for finetune; a finetune given --lr is named _lrX)")
     ap.add_argument("--init", default="jaxdenoise/weights/demc")
     ap.add_argument("--loss-scale", default="reference", choices=("reference", "output"))
     ap.add_argument("--level-weight", type=float, default=0.0)
@@ -195,17 +196,18 @@ def main() -> None:
             for reading in ("decoder", "all"):
                 name = f"{reading}_s{seed}"
                 summary["runs"][name] = _run(base.with_config(skip_init=reading), data, out / name, args, seed=seed,
-                                             learning_rate=args.lr)
+                                             learning_rate=5e-4 if args.lr is None else args.lr)
                 write_json(out / "summary.json", summary)
     else:
         stem = f"scale_{args.loss_scale}" + (f"_level{args.level_weight:g}" if args.level_weight else "")
         if args.level_weight and (args.level_pool, args.level_scale) != (8, "reference"):
             stem += f"_pool{args.level_pool}_{args.level_scale}"
         for seed in seeds:
-            name = stem + (f"_s{seed}" if seed else "")
+            name = stem + (f"_lr{args.lr:g}" if args.lr is not None else "") + (f"_s{seed}" if seed else "")
             summary["runs"][name] = _run(base.with_config(loss_scale=args.loss_scale, level_weight=args.level_weight,
                                                           level_pool=args.level_pool, level_scale=args.level_scale),
-                                         data, out / name, args, init_from=args.init, seed=seed)
+                                         data, out / name, args, init_from=args.init, seed=seed,
+                                         **({} if args.lr is None else {"learning_rate": args.lr}))
             write_json(out / "summary.json", summary)
 
 
