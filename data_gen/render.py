@@ -169,8 +169,9 @@ def render_moments(scene, *, spp: int, seed: int, settings: PathSettings, record
 
 def first_hits(scene, *, spp: int = 16, seed: int = 0) -> dict[str, np.ndarray]:
     """What each pixel's camera rays hit first, as fractions of ``spp`` rays per pixel (uniform in the
-    pixel, as the renders' box filter): ``surface`` (a shape that emits nothing), ``emitter`` (a shape
-    that is an area emitter; an environment seen directly counts as neither: depth 0). (H, W) float64
+    pixel, as the renders' box filter): ``surface`` (a shape that emits nothing toward the ray, which
+    includes the back of a one-sided area light), ``emitter`` (an area emitter's emitting side; an
+    environment seen directly counts as neither: depth 0). (H, W) float64
     each. The masks the colour-level studies need (issue 33: surface pixels and emitters apart); one
     intersection per ray, so far cheaper than a render. Vectorized (LLVM) variants only."""
     import drjit as dr
@@ -189,7 +190,12 @@ def first_hits(scene, *, spp: int = 16, seed: int = 0) -> dict[str, np.ndarray]:
     idx = dr.arange(mi.UInt32, npix * spp) // dr.opaque(mi.UInt32, spp)
     ray, _ = _sample_wavefront(scene, sensor, sampler, idx, width)
     si = scene.ray_intersect(ray)
-    emitter = si.is_valid() & (si.emitter(scene) != None)  # noqa: E711 - Dr.Jit's pointer comparison
+    emitters = si.emitter(scene)
+    emitter = si.is_valid() & (emitters != None)  # noqa: E711 - Dr.Jit's pointer comparison
+    # an emitter counts where it sends light toward the camera: a one-sided area light seen from
+    # behind emits nothing there and is a surface (its reference is black, not a light)
+    le = emitters.eval(si, emitter)
+    emitter &= (le[0] > 0) | (le[1] > 0) | (le[2] > 0)
     comps = [mi.Float(dr.select(si.is_valid() & ~emitter, 1.0, 0.0)), mi.Float(dr.select(emitter, 1.0, 0.0))]
     dr.eval(*comps)
     (surf, _), (em, _) = block_sums(comps, npix, spp)

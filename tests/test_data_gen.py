@@ -364,3 +364,23 @@ def test_first_hits_tells_surfaces_emitters_and_sky_apart_and_labels_rebuild_sce
         scenes.scene_from_label("library:chess@000000000000", width=8, height=6)
     with pytest.raises(data_gen.SceneError, match="family:seed"):
         scenes.scene_from_label("castles:3", width=8, height=6)
+
+
+def test_first_hits_counts_the_back_of_a_one_sided_light_as_a_surface():
+    """A one-sided area light (Mitsuba's ``area`` emits on its normal's side) seen from behind is black
+    in the render: `render.first_hits` counts it a surface, and an emitter from the front (the levels
+    study divided outputs by a black reference on such pixels)."""
+    _llvm()
+    import mitsuba as mi
+
+    def looking_from(z):
+        return mi.load_dict({"type": "scene", "sensor": {
+            "type": "perspective", "fov": 60,
+            "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, z], target=[0, 0, 0], up=[0, 1, 0]),
+            "film": {"type": "hdrfilm", "width": 16, "height": 16, "rfilter": {"type": "box"}}},
+            "light": {"type": "rectangle", "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 5.0}}}})
+
+    front, back = render.first_hits(looking_from(3.0), spp=4), render.first_hits(looking_from(-3.0), spp=4)
+    assert front["emitter"].sum() > 40 and front["surface"].sum() == 0
+    assert back["emitter"].sum() == 0
+    np.testing.assert_array_equal(back["surface"], front["emitter"])
