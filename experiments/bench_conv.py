@@ -89,6 +89,30 @@ def matmul(n, runs):
     return timed(lambda u, v: u @ v, a, a, runs=runs)[1]
 
 
+# OIDN's U-Net as its `high` quality runs it for colour + albedo + normal (the "base" model of its
+# published training code, RenderKit/oidn training/model.py, UNet(small=False); OIDN keeps a "large"
+# model only for clean-auxiliary and auxiliary-only filters): each 3x3 convolution as (input
+# channels, output channels, level), level k at 1/2^k of the side; input channels as the parts a skip
+# concatenates, ``IC`` the frame's own (9: colour, albedo, normal).
+IC = "ic"
+OIDN_UNET = (((IC,), 32, 0), ((32,), 32, 0), ((32,), 48, 1), ((48,), 64, 2), ((64,), 80, 3), ((80,), 96, 4),
+             ((96,), 96, 4), ((96, 64), 112, 3), ((112,), 112, 3), ((112, 48), 96, 2), ((96,), 96, 2),
+             ((96, 32), 64, 1), ((64,), 64, 1), ((64, IC), 64, 0), ((64,), 32, 0), ((32,), 3, 0))
+OIDN_ALIGNMENT = 16  # OIDN pads the image to a multiple of 16 (its four 2x2 poolings)
+
+
+def oidn_gflop(h: int, w: int, in_channels: int = 9) -> float:
+    """GFLOP of OIDN's U-Net (`OIDN_UNET`) on an ``h`` x ``w`` frame, a multiply-add counted as 2
+    (XLA's convention, borders included: XLA leaves out the zero-padding's products, about 2 % at
+    1280x720), the 2x2 poolings, up-samplings and ReLUs left out."""
+    ph, pw = (-(-v // OIDN_ALIGNMENT) * OIDN_ALIGNMENT for v in (h, w))
+    flop = 0
+    for cin, cout, level in OIDN_UNET:
+        cin = sum(in_channels if c == IC else c for c in cin)
+        flop += 2 * 9 * cin * cout * (ph >> level) * (pw >> level)
+    return flop / 1e9
+
+
 def oidn(h, w, runs):
     try:
         import pyoidn
