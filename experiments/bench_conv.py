@@ -103,7 +103,7 @@ OIDN_ALIGNMENT = 16  # OIDN pads the image to a multiple of 16 (its four 2x2 poo
 
 def oidn_gflop(h: int, w: int, in_channels: int = 9) -> float:
     """GFLOP of OIDN's U-Net (`OIDN_UNET`) on an ``h`` x ``w`` frame, a multiply-add counted as 2
-    (XLA's convention, borders included: XLA leaves out the zero-padding's products, about 2 % at
+    (XLA's convention; products with the zero border counted, which XLA leaves out: under 1 % at
     1280x720), the 2x2 poolings, up-samplings and ReLUs left out."""
     ph, pw = (-(-v // OIDN_ALIGNMENT) * OIDN_ALIGNMENT for v in (h, w))
     flop = 0
