@@ -151,8 +151,7 @@ def _blur_valid(a: jnp.ndarray) -> jnp.ndarray:
     return sum(float(_TAPS[k]) * a[..., :, k:w - n + k, :] for k in range(SSIM_WIN))
 
 
-@jax.jit
-def _ssim_per_image(x, ref):
+def _ssim_map(x, ref):
     x, y = tonemap(x), tonemap(ref)
     c1 = (SSIM_K1 * 1.0) ** 2  # data range 1
     c2 = (SSIM_K2 * 1.0) ** 2
@@ -160,9 +159,13 @@ def _ssim_per_image(x, ref):
     vx = _blur_valid(x * x) - ux * ux  # population (co)variances: cov_norm = 1 (Wang 2004)
     vy = _blur_valid(y * y) - uy * uy
     vxy = _blur_valid(x * y) - ux * uy
-    s = ((2 * ux * uy + c1) * (2 * vxy + c2)) / ((ux * ux + uy * uy + c1) * (vx + vy + c2))
+    return ((2 * ux * uy + c1) * (2 * vxy + c2)) / ((ux * ux + uy * uy + c1) * (vx + vy + c2))
+
+
+@jax.jit
+def _ssim_per_image(x, ref):
     # mean over the kept pixels of each channel, then over channels (skimage's channel_axis mean)
-    return jnp.mean(s, axis=(-3, -2, -1))
+    return jnp.mean(_ssim_map(x, ref), axis=(-3, -2, -1))
 
 
 def _ssim_check(fn: str, x: Any, ref: Any):
@@ -172,6 +175,13 @@ def _ssim_check(fn: str, x: Any, ref: Any):
         raise JaxdenoiseError(f"{fn}: images are {h}x{w} pixels (H x W); SSIM's {SSIM_WIN}x{SSIM_WIN} Gaussian "
                          f"window (sigma {SSIM_SIGMA}) needs at least {SSIM_WIN}x{SSIM_WIN}")
     return x, ref
+
+
+def ssim_map(x: Any, ref: Any) -> jnp.ndarray:
+    """The SSIM of every pixel and channel whose window lies inside the image, ``(..., H - 10, W - 10,
+    C)``: what `ssim_per_image` averages (where in a frame a method wins or loses SSIM)."""
+    x, ref = _ssim_check("ssim_map", x, ref)
+    return jax.jit(_ssim_map)(x, ref)
 
 
 def ssim_per_image(x: Any, ref: Any) -> jnp.ndarray:
@@ -227,5 +237,5 @@ def temporal_error(frames: Any, refs: Any, eps: float = RELMSE_EPS) -> jnp.ndarr
 
 __all__ = [
     "RELMSE_EPS", "relmse", "relmse_per_image", "mse", "mse_per_image", "psnr", "psnr_per_image",
-    "ssim", "ssim_per_image", "temporal_error", "temporal_error_per_frame",
+    "ssim", "ssim_map", "ssim_per_image", "temporal_error", "temporal_error_per_frame",
 ]

@@ -8,6 +8,7 @@ import pytest
 from skimage.metrics import structural_similarity
 
 from jaxdenoise import color, metrics
+from jaxdenoise.errors import JaxdenoiseError
 
 
 def _pair(shape, seed=0, noise=0.2):
@@ -63,6 +64,22 @@ def test_ssim_matches_skimage_structured_image():
     ref[5:8, 5:8] = 20.0
     x = ref + np.random.default_rng(4).normal(0, 0.05, ref.shape).astype(np.float32)
     assert abs(float(metrics.ssim(x, ref)) - _skimage_ssim(x, ref)) < 1e-4
+
+
+def test_ssim_map_is_what_ssim_averages_and_matches_skimages_full_map():
+    """`ssim_map`: the (H - 10, W - 10, C) values inside the border; their mean is `ssim_per_image`,
+    and each channel equals scikit-image's full SSIM image cropped by its 5-pixel border."""
+    xs, refs = zip(*[_pair((17, 21, 3), s) for s in range(2)])
+    x, ref = np.stack(xs), np.stack(refs)
+    m = np.asarray(metrics.ssim_map(x, ref))
+    assert m.shape == (2, 7, 11, 3)
+    np.testing.assert_allclose(m.mean(axis=(1, 2, 3)), np.asarray(metrics.ssim_per_image(x, ref)), atol=1e-6)
+    tx, tr = np.asarray(color.tonemap(xs[0])), np.asarray(color.tonemap(refs[0]))
+    _, full = structural_similarity(tx, tr, gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
+                                    data_range=1.0, channel_axis=-1, full=True)
+    np.testing.assert_allclose(m[0], full[5:-5, 5:-5], atol=1e-4)  # the brief's agreement tolerance
+    with pytest.raises(JaxdenoiseError, match="ssim_map: images are 10x21"):
+        metrics.ssim_map(x[:, :10], ref[:, :10])
 
 
 def test_batched_and_per_image():
