@@ -31,7 +31,7 @@ from .integrator import derive_seed
 from .mitsuba_setup import setup_mitsuba
 from jaxdenoise.errors import JaxdenoiseError
 
-__all__ = ["camera_params", "camera_path", "camera_positions", "render_sequence"]
+__all__ = ["camera_params", "camera_path", "camera_positions", "render_sequence", "set_camera"]
 
 
 def _vec3(value: Any, name: str) -> np.ndarray:
@@ -164,10 +164,14 @@ def camera_path(scene_params: Mapping[str, Any], n_frames: int, seed: int) -> li
             for o, t in zip(origins, targets)]
 
 
-def _set_camera(scene, transform) -> None:
-    """Move the first sensor of a loaded scene (a Mitsuba parameter update, no reload)."""
+def set_camera(scene, transform) -> None:
+    """Move the first sensor of a loaded scene to ``transform`` (camera-to-world: a
+    ``mi.ScalarTransform4f``, or a 4x4 matrix such as a frame's ``camera["to_world"]`` in
+    sequence.json); a Mitsuba parameter update, no reload."""
     import mitsuba as mi
 
+    if not isinstance(transform, mi.ScalarTransform4f):
+        transform = mi.ScalarTransform4f(np.asarray(transform, dtype=np.float64).reshape(4, 4))
     params = mi.traverse(scene.sensors()[0])
     if "to_world" not in params:
         raise JaxdenoiseError("scene: its sensor exposes no 'to_world' parameter, so it cannot be moved")
@@ -231,7 +235,7 @@ def render_sequence(scene: Any, out_dir: str | os.PathLike, *, n_frames: int, in
     records = []
     try:
         for k, transform in enumerate(frames):
-            _set_camera(loaded, transform)
+            set_camera(loaded, transform)
             matrix = np.asarray(transform.matrix, dtype=np.float64).reshape(4, 4)
             fseed = derive_seed(seed, "frame", k, np.round(matrix, 6).tolist())
             rec = render_shot(loaded, out_dir / f"frame_{k:04d}", spp=spp, ref_spp=ref_spp,
@@ -240,7 +244,7 @@ def render_sequence(scene: Any, out_dir: str | os.PathLike, *, n_frames: int, in
                              "to_world": matrix.tolist()}
             records.append(rec)
     finally:
-        _set_camera(loaded, original)
+        set_camera(loaded, original)
     seq = {"n_frames": int(n_frames), "seed": int(seed), "instances": int(instances), "ref_spp": int(ref_spp),
            "camera_params": {k: (np.asarray(v).tolist() if not isinstance(v, (int, float)) else v)
                              for k, v in params.items()},

@@ -59,26 +59,41 @@ def frame_levels(out: np.ndarray, ref: np.ndarray, surface: np.ndarray | None = 
     return [float(np.median(bo[..., c][lit] / np.maximum(br[..., c][lit], 1e-12))) for c in range(3)]
 
 
-def scene_of(shot_dir: Path, name: str) -> tuple[str, int, int]:
-    """``(scene label, width, height)`` of render ``name`` in ``shot_dir``, from its shot.json record."""
+def scene_of(shot_dir: Path, name: str) -> tuple[str, int, int, tuple | None]:
+    """``(scene label, width, height, camera)`` of render ``name`` in ``shot_dir``, from its shot.json
+    record; ``camera`` is the frame's camera-to-world matrix (nested tuples) when ``shot_dir`` is a
+    frame of a fly-through (``frame_XXXX/`` beside a ``sequence.json``), else None (the scene's own)."""
     record = shot_dir / "shot.json"
     try:
         key = json.loads(record.read_text())["files"][name]["key"]
     except (OSError, KeyError, ValueError) as exc:
         raise SystemExit(f"{record}: no render record for {name} ({exc!r}); measure without masks: --masks none")
-    return key["scene"], int(key["width"]), int(key["height"])
+    camera, seq = None, shot_dir.parent / "sequence.json"
+    if seq.is_file():
+        frames = json.loads(seq.read_text()).get("frames", [])
+        k = int(shot_dir.name[len("frame_"):]) if shot_dir.name[len("frame_"):].isdigit() else -1
+        if not 0 <= k < len(frames) or "to_world" not in frames[k].get("camera", {}):
+            raise SystemExit(f"{seq}: no camera for {shot_dir.name} (frames 0-{len(frames) - 1}); "
+                             "measure without masks: --masks none")
+        camera = tuple(tuple(float(v) for v in row) for row in frames[k]["camera"]["to_world"])
+    return key["scene"], int(key["width"]), int(key["height"]), camera
 
 
-def scene_masks(label: str, width: int, height: int) -> dict:
+def scene_masks(label: str, width: int, height: int, camera: tuple | None = None) -> dict:
     """``surface`` (pixels whose 16 rays all hit a non-emitting shape, with no emitter ray in their
     `BOX` square) and ``emitter`` (pixels whose rays all hit an area emitter, eroded by one pixel) of
-    the scene ``label`` at ``width`` x ``height``, rebuilt by data_gen (module docstring)."""
+    the scene ``label`` at ``width`` x ``height``, rebuilt by data_gen with its camera moved to
+    ``camera`` (a fly-through frame's camera-to-world; None: the scene's own) (module docstring)."""
     from scipy.ndimage import maximum_filter, minimum_filter
 
     from data_gen.render import first_hits
     from data_gen.scenes import scene_from_label
+    from data_gen.sequences import set_camera
 
-    hits = first_hits(scene_from_label(label, width=width, height=height))
+    scene = scene_from_label(label, width=width, height=height)
+    if camera is not None:
+        set_camera(scene, camera)
+    hits = first_hits(scene)
     near = maximum_filter(hits["emitter"] > 0, size=BOX, mode="nearest")
     return {"surface": (hits["surface"] >= 1.0) & ~near,
             "emitter": minimum_filter(hits["emitter"] >= 1.0, size=3, mode="constant")}
@@ -121,7 +136,7 @@ def measure(methods: list[str], folders: list[str], spps: list[int], masks: str 
     def masks_of(render) -> dict | None:
         if masks == "none":
             return None
-        k = scene_of(render.path.parent, render.path.name)  # every rate of a shot: one scene, one mask
+        k = scene_of(render.path.parent, render.path.name)  # every rate of a shot: one scene (and camera), one mask
         if k not in cache:
             cache[k] = scene_masks(*k)
         return cache[k]

@@ -19,6 +19,12 @@ fly-throughs and the procedural ones, jaxdenoise/weights/rae/README.md) and vali
 library's validation fly-throughs (``--val-data``, every rate, state carried) every
 ``--validate-every`` steps, keeping ``best/`` by the geometric mean of the validation RelMSE.
 ``continue`` trains one arm further (the same run folder, resumed: ``--steps`` is the new total).
+``level`` fine-tunes the shipped weights (``--init jaxdenoise/weights/rae``) with the level term
+(`jaxdenoise.methods.rae.Config.level_weight`, ``--level-weight``) at a constant Adam rate (``--lr``)
+on crops of ``--seed``, in ``OUT/level{W}_lr{LR}_s{SEED}``:
+
+    python experiments/rae_rates.py level --level-weight 1 --lr 1e-4 --seed 3 --steps 300 --init jaxdenoise/weights/rae --out runs/rae_level
+
 Every run's record goes to ``OUT/summary.json``.
 """
 from __future__ import annotations
@@ -45,42 +51,43 @@ ARMS = {"power": {"input_transform": "power", "rate_input": False},
         "linear": {"input_transform": "linear", "rate_input": False}}
 
 
-def _method(arm: str):
-    return get("rae", train_spps=SPPS, exposure="frame", recipe="", **ARMS[arm])
+def _method(arm: str, **config):
+    return get("rae", train_spps=SPPS, exposure="frame", recipe="", **ARMS[arm], **config)
 
 
 def start_weights(init: Path, method, out: Path) -> Path:
     """``init``'s weights as a start for ``method``: with the rate channel, the first convolution gets
     one more input row, zero (the network then starts as it was); written to ``out``."""
     params, meta = checkpoint.load(init)
-    if method.config.rate_input:
+    if method.config.rate_input and not meta.get("config", {}).get("rate_input"):
         w = np.asarray(params["enc"]["0"]["w"])
         params["enc"]["0"]["w"] = np.concatenate([w, np.zeros(w.shape[:2] + (1,) + w.shape[3:], w.dtype)], 2)
     checkpoint.save(out, params, method.config, {"method": "rae", "started_from": str(init)})
     return out
 
 
-def _train_arm(arm: str, data, out: Path, args, steps: int) -> dict:
-    method = _method(arm)
+def _train_arm(arm: str, data, out: Path, args, steps: int, name: str | None = None, **config) -> dict:
+    method = _method(arm, **config)
     init = start_weights(Path(args.init), method, out / "start")
+    fields = {"schedule": "constant", "seed": args.seed} if config else {}
     run = TrainConfig.for_method(method, steps=steps, resume=True, val_data=args.val_data, init_from=str(init),
                                  validate_every=args.validate_every, select="geomean", progress=False,
-                                 learning_rate=args.lr)
+                                 learning_rate=args.lr, **fields)
     t = time.perf_counter()
-    s = train(method, data, out / arm, run)
+    s = train(method, data, out / (name or arm), run)
     rec = {"steps": s["steps_done"], "steps_this_run": s["steps_this_run"], "seconds": time.perf_counter() - t,
            "final_loss": s["final_loss"], "best_step": s["best"]["step"],
            "best_geomean": s["best"]["relmse_geomean"], "best_per_spp": s["best"].get("per_spp"),
-           "config": ARMS[arm] | {"exposure": "frame", "train_spps": list(SPPS)},
+           "config": ARMS[arm] | {"exposure": "frame", "train_spps": list(SPPS)} | config | fields,
            "validation": [{k: v.get(k) for k in ("step", "relmse", "relmse_geomean", "per_spp", "ssim")}
                           for v in s["validation"]]}
-    print(arm, {k: rec[k] for k in ("steps", "seconds", "best_step", "best_geomean")}, flush=True)
+    print(name or arm, {k: rec[k] for k in ("steps", "seconds", "best_step", "best_geomean")}, flush=True)
     return rec
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("what", choices=("arms", "continue"))
+    ap.add_argument("what", choices=("arms", "continue", "level"))
     ap.add_argument("--data", default="runs/rae_rates_data")
     ap.add_argument("--val-data", default="data/rae_library_val")
     ap.add_argument("--out", required=True)
@@ -91,9 +98,11 @@ def main() -> None:
     ap.add_argument("--lr", type=float, default=3e-4, help="Adam's base rate (ramp-up then 1/sqrt(t), the "
                     "module's schedule; 3e-4: the earlier CPU fine-tunes')")
     ap.add_argument("--init", default="jaxdenoise/weights/rae-paper")
+    ap.add_argument("--level-weight", type=float, default=1.0, help="level: the level term's weight")
+    ap.add_argument("--seed", type=int, default=3, help="level: the crops' seed (the shipped run drew seed 0's)")
     args = ap.parse_args()
     out = Path(args.out)
-    arms = args.arms.split(",") if args.what == "arms" else [args.arm]
+    arms = args.arms.split(",") if args.what == "arms" else ["rate"] if args.what == "level" else [args.arm]
     bad = [a for a in arms if a not in ARMS]
     if bad:
         raise SystemExit(f"unknown arm(s) {bad}; expected some of {sorted(ARMS)}")
@@ -102,8 +111,12 @@ def main() -> None:
     summary = json.loads(path.read_text()) if path.is_file() else {"data": args.data, "val_data": args.val_data,
                                                                    "lr": args.lr, "init": args.init, "runs": {}}
     for arm in arms:
-        summary["runs"][arm] = _train_arm(arm, data, out, args, args.steps)
-        summary["runs"][arm]["command"] = " ".join(["python", "experiments/rae_rates.py", *sys.argv[1:]])
+        if args.what == "level":
+            name = f"level{args.level_weight:g}_lr{args.lr:g}_s{args.seed}"
+            rec = _train_arm(arm, data, out, args, args.steps, name, level_weight=args.level_weight)
+        else:
+            name, rec = arm, _train_arm(arm, data, out, args, args.steps)
+        summary["runs"][name] = rec | {"command": " ".join(["python", "experiments/rae_rates.py", *sys.argv[1:]])}
         write_json(path, summary)
 
 

@@ -946,6 +946,7 @@ STUDIES: dict[str, tuple[str, str]] = {
     "tiling/tiling.md": ("tiling", "tiling/tiling.json"),
     "demc_rates/demc_levels.md": ("demc_levels", "demc_rates/demc_levels.json"),
     "rae_rates/demc_levels.md": ("demc_levels", "rae_rates/demc_levels.json"),
+    "rae_rates/level_term/demc_levels.md": ("demc_levels", "rae_rates/level_term/demc_levels.json"),
 }
 
 # Pages written by hand that state no measured number of their own (they point to the pages above).

@@ -4,6 +4,7 @@ any input size, the loss terms against hand computations and HFEN's LoG against 
 metadata through EXR, and view-space vectors turning with the image under augmentation."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import jax
@@ -169,6 +170,45 @@ def test_loss_terms_by_hand():
                                                             "albedo": np.ones((1, 2, 8, 8, 3), np.float32),
                                                             "reference": np.ones((1, 2, 8, 8, 3), np.float32)}, TINY)
     assert np.isfinite(float(v))
+
+
+def test_level_term_pulls_the_l1_median_toward_the_block_mean():
+    """The level term (`Config.level_weight`): the RelMSE of 8x8 block means by hand; ``loss`` adds it
+    frame-weighted; and it moves the uniform output that minimises the frame loss from the L1's
+    median (the dark reference) toward the block's mean."""
+    # each 8x8 block: 3/4 of the pixels 0.2, 1/4 1.0 (mean 0.4); one frame
+    ref = np.where((np.arange(8)[:, None] % 4 == 0) & np.ones((8, 8), bool), 1.0, 0.2)
+    refs = jnp.asarray(np.broadcast_to(np.tile(ref, (2, 2))[None, None, ..., None], (1, 1, 16, 16, 3)), jnp.float32)
+    cfg = dataclasses.replace(rae.Config(), level_weight=4.0)
+    t = rae.loss_terms(jnp.full_like(refs, 0.5), refs, cfg)
+    np.testing.assert_allclose(np.asarray(t["level"]), [0.1 ** 2 / (0.4 ** 2 + 1e-3)], rtol=1e-5)
+    assert "level" not in rae.loss_terms(refs, refs, rae.Config())
+
+    def best(c):
+        def frame_loss(v):
+            t = rae.loss_terms(jnp.full_like(refs, v), refs, c)
+            return sum(w * t[k][0] for w, k in zip(c.loss_weights, ("spatial", "hfen", "temporal"))) + (
+                c.level_weight * t["level"][0] if c.level_weight else 0.0)
+
+        vs = np.linspace(0.2, 1.0, 401)
+        return vs[int(np.argmin(np.asarray(jax.vmap(frame_loss)(jnp.asarray(vs, jnp.float32)))))]
+
+    assert best(rae.Config()) == pytest.approx(0.2, abs=3e-3)
+    assert best(cfg) == pytest.approx(0.4, abs=0.03)
+    # `loss` adds the term, weighted like the others over the frames
+    tiny = dataclasses.replace(TINY, level_weight=4.0)
+    params = rae.init(jax.random.PRNGKey(0), tiny)
+    x = np.asarray(jax.random.uniform(jax.random.PRNGKey(1), (1, 2, 8, 8, 7)), np.float32)
+    batch = {"x": x, "albedo": np.ones((1, 2, 8, 8, 3), np.float32), "reference": np.full((1, 2, 8, 8, 3), 0.3, np.float32)}
+    with_level, aux = rae.loss(params, batch, tiny)
+    plain, _ = rae.loss(params, batch, TINY)
+    fw = np.asarray(rae.frame_weights(tiny, 2))
+    pred = rae.run_sequence(params, jnp.asarray(x), jnp.asarray(batch["albedo"]), tiny)
+    level = np.asarray(rae.loss_terms(pred, jnp.asarray(batch["reference"]), tiny)["level"])
+    np.testing.assert_allclose(float(with_level) - float(plain), 4.0 * np.sum(fw * level) / np.sum(fw), rtol=1e-4)
+    assert float(aux["terms"]["level"]) > 0
+    with pytest.raises(ValueError, match="level_weight"):
+        rae.num_params(rae.Config(level_weight=-1.0))
 
 
 def test_camera_metadata_round_trips_through_exr(tmp_path):

@@ -110,7 +110,7 @@ def test_render_sequence_layout_and_resume(tmp_path):
     different views; instances are independent; a re-run renders nothing; the scene's sensor is put
     back."""
     from data_gen.scenes import default_scene, load_scene
-    from data_gen.sequences import render_sequence
+    from data_gen.sequences import render_sequence, set_camera
     from jaxdenoise.io import read_buffers, read_image
 
     scene = load_scene(default_scene(width=8, height=8))
@@ -138,6 +138,13 @@ def test_render_sequence_layout_and_resume(tmp_path):
     assert {p: p.stat().st_mtime_ns for p in out.rglob("*.exr")} == mtimes
     with pytest.raises(ValueError, match="n_frames"):
         render_sequence(scene, out, n_frames=0)
+    # a frame's camera in sequence.json, set on the scene, is the camera its EXRs were rendered with
+    # (their world-to-camera, whose x axis OpenEXR's convention flips)
+    set_camera(scene, rec["frames"][2]["camera"]["to_world"])
+    m = np.asarray(scene.sensors()[0].world_transform().matrix, dtype=np.float64).reshape(4, 4)
+    c, _ = read_buffers(out / "frame_0002" / "spp0001_00.exr")
+    assert not np.allclose(m, before, atol=1e-3)
+    np.testing.assert_allclose(np.diag([-1.0, 1, 1, 1]) @ np.linalg.inv(m), c.world_to_camera, atol=1e-4)
 
 
 @pytest.mark.mitsuba

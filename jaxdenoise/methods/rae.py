@@ -37,6 +37,8 @@ of the remodulated prediction and the target, both raised to 0.2; ``L_g`` the L1
 (Laplacian of Gaussian, sigma 1.5); ``L_t`` the L1 of their temporal differences; frames weighted
 by (0.011, 0.044, 0.135, 0.325, 0.607, 0.882, 1), back-propagated through time over an unrolled
 loop (a rolled ``lax.scan`` is ~25x slower to differentiate on a CPU: `jaxdenoise.nn.audit`).
+Ours (issue 34, ``level_weight``, 0 by default): a level term on 8x8 block means added to each frame's
+loss (`Config.level_weight`, docs/methods/rae.md).
 """
 from __future__ import annotations
 
@@ -49,7 +51,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import color, nn, view
+from .. import color, metrics, nn, view
 from ..buffers import SAMPLE_COUNT_FIELD, Buffers
 from ..errors import JaxdenoiseError
 from ..pipeline import carried_stat, carried_stats
@@ -102,6 +104,14 @@ class Config:
     # Training data (Sec. 4.3, 5.3: 1-spp inputs, the "paper" recipe; ours: 1-16), 7-frame sequences,
     # batch 4; crop ours (CPU).
     train_spps: tuple[int, ...] = (1, 4, 16)
+    # A level term beside Sec. 4.4's loss (ours, issue 34; DEMC's `level_weight`, docs/methods/rae.md):
+    # `level_weight` times the RelMSE (eps `level_eps`) between `level_pool` x `level_pool` block means of
+    # the HDR prediction and target, per frame, frame-weighted like the other terms; 0 = the paper's loss.
+    # The L1 of 0.2-powered images is least at the power domain's median, below the mean of a skewed
+    # target (a dark level); a block's mean has no such pull.
+    level_weight: float = dataclasses.field(default=0.0, metadata={"training": True})
+    level_pool: int = dataclasses.field(default=8, metadata={"training": True})
+    level_eps: float = dataclasses.field(default=1e-3, metadata={"training": True})
     train_frames: int = 7
     train_crop: int = 64
     train_batch: int = 4
@@ -133,6 +143,9 @@ def _check(config: Config) -> None:
         raise JaxdenoiseError(f"rae: config.widths must give the five encoder stages, got {config.widths}")
     if config.decoder_widths is not None and len(config.decoder_widths) != 5:
         raise JaxdenoiseError(f"rae: config.decoder_widths must give five decoder stages, got {config.decoder_widths}")
+    if not config.level_weight >= 0 or int(config.level_pool) < 1 or not config.level_eps > 0:
+        raise JaxdenoiseError(f"rae: config.level_weight must be >= 0, config.level_pool >= 1 and config.level_eps > 0, "
+                              f"got {config.level_weight!r}, {config.level_pool!r} and {config.level_eps!r}")
     for name, allowed in (("input_transform", INPUT_TRANSFORMS), ("exposure", EXPOSURES), ("recipe", RECIPES)):
         if getattr(config, name) not in allowed:
             raise JaxdenoiseError(f"rae: config.{name} is {getattr(config, name)!r}; expected one of {allowed}")
@@ -400,14 +413,20 @@ def _hfen(img: jax.Array, sigma: float) -> jax.Array:
 
 
 def loss_terms(pred: jax.Array, target: jax.Array, config: Config) -> dict:
-    """Per-frame ``L_s``, ``L_g``, ``L_t`` of ``(B, T, H, W, 3)`` HDR sequences (``L_t`` of frame 0 is 0)."""
+    """Per-frame ``L_s``, ``L_g``, ``L_t`` of ``(B, T, H, W, 3)`` HDR sequences (``L_t`` of frame 0 is 0),
+    and with ``level_weight`` the level term (`Config.level_weight`): the RelMSE of ``level_pool``-pixel
+    block means (`jaxdenoise.metrics.relmse_per_image`, eps ``level_eps``) in HDR."""
     p = color.gamma(pred, 1.0 / config.power)
     t = color.gamma(jnp.maximum(target, 0.0), 1.0 / config.power)
     ls = jnp.mean(jnp.abs(p - t), axis=(0, 2, 3, 4))
     lg = jnp.mean(jnp.abs(_hfen(p, config.hfen_sigma) - _hfen(t, config.hfen_sigma)), axis=(0, 2, 3, 4))
     dt = jnp.abs((p[:, 1:] - p[:, :-1]) - (t[:, 1:] - t[:, :-1]))
     lt = jnp.concatenate([jnp.zeros((1,)), jnp.mean(dt, axis=(0, 2, 3, 4))])
-    return {"spatial": ls, "hfen": lg, "temporal": lt}
+    terms = {"spatial": ls, "hfen": lg, "temporal": lt}
+    if config.level_weight:
+        pool = nn.AvgPool(max(1, min(int(config.level_pool), *pred.shape[-3:-1])))[1]  # (a crop below it: its size)
+        terms["level"] = jnp.mean(metrics.relmse_per_image(pool({}, pred), pool({}, target), config.level_eps), axis=0)
+    return terms
 
 
 def run_sequence(params: dict, x: jax.Array, albedo: jax.Array, config: Config, scale: Any = None) -> jax.Array:
@@ -446,6 +465,8 @@ def loss(params: dict, batch: dict, config: Config):
     fw = jnp.asarray(frame_weights(config, t), jnp.float32)
     ws, wg, wt = config.loss_weights
     per_frame = ws * terms["spatial"] + wg * terms["hfen"] + wt * terms["temporal"]
+    if config.level_weight:
+        per_frame = per_frame + config.level_weight * terms["level"]
     value = jnp.sum(fw * per_frame) / jnp.sum(fw)
     return value, {"terms": {k: jnp.sum(fw * v) / jnp.sum(fw) for k, v in terms.items()}}
 
