@@ -7,7 +7,12 @@ every sampling rate of the data (the network is trained at 1 spp: 2-16 spp test 
 Each sequence (``scene/frame_XXXX/``) at each rate is run through the sequence driver (`jaxdenoise.
 load(...).sequence`: state carried, windows read) except ``rae (per frame)``, which calls the same
 weights' `apply` on every frame (the first step from a zero state). Scores: mean RelMSE and SSIM
-over frames and the temporal error (`jaxdenoise.metrics.temporal_error`), averaged over sequences.
+over frames and the temporal error (`jaxdenoise.metrics.temporal_error`), averaged over sequences;
+each row also keeps the RelMSE of every frame and the temporal error of every consecutive pair
+(`jaxdenoise.metrics.temporal_error_per_frame`), so a recurrent method's warm-up (its first frame
+from a zero state) can be told from its steady state, and every frame's colour level per channel
+(`demc_levels.frame_levels`: the median box-mean ratio to the reference over lit pixels, emitters
+included).
 """
 from __future__ import annotations
 
@@ -18,7 +23,9 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+for p in (ROOT, ROOT / "experiments"):
+    if str(p) not in sys.path:
+        sys.path.insert(0, str(p))
 
 from jaxdenoise import load, metrics  # noqa: E402
 from jaxdenoise.buffers import BuffersError  # noqa: E402
@@ -26,6 +33,7 @@ from jaxdenoise.data import discover, renders_by_spp, sequences  # noqa: E402
 from jaxdenoise.fsutil import write_json  # noqa: E402
 from jaxdenoise.io import read_buffers, read_image  # noqa: E402
 from jaxdenoise.methods import get  # noqa: E402
+from demc_levels import frame_levels  # noqa: E402
 
 
 def main() -> None:
@@ -63,10 +71,14 @@ def main() -> None:
                                                           "reason": str(e)})
                     print(f"not run: {n} at {spp} spp: {e}", flush=True)
                     continue
+                per_frame = [float(metrics.relmse(o, r)) for o, r in zip(outs, refs)]
+                per_pair = np.asarray(metrics.temporal_error_per_frame(outs, refs), np.float64)
                 row = {"sequence": seq.folder.name, "spp": spp, "method": n,
-                       "relmse": float(np.mean([metrics.relmse(o, r) for o, r in zip(outs, refs)])),
+                       "relmse": float(np.mean(per_frame)),
                        "ssim": float(np.mean([metrics.ssim(o, r) for o, r in zip(outs, refs)])),
-                       "temporal": float(metrics.temporal_error(outs, refs))}
+                       "temporal": float(np.mean(per_pair)),
+                       "relmse_per_frame": per_frame, "temporal_per_pair": per_pair.tolist(),
+                       "level_per_frame": [frame_levels(o, r) for o, r in zip(outs, refs)]}
                 res["rows"].append(row)
                 print(row, flush=True)
     write_json(Path(args.out), res)

@@ -296,10 +296,38 @@ def rae_temporal_means(results: Path, rel: str, methods: list[str]) -> str:
     return table(["spp", f"RelMSE: {names}", "SSIM", "temporal error"], rows, "rlll")
 
 
+def rae_frames(results: Path, rel: str, methods: list[str]) -> str:
+    """Per method and rate over the fly-throughs of ``rel``: the temporal error (mean over every frame
+    pair, the median pair, the worst pair) beside twice the mean RelMSE (what two frames with
+    independent errors of that size give) and the worst frame's RelMSE; and the colour level of the
+    first frame (zero state for a recurrent method) and of the later ones (state carried): per
+    channel, the median over those frames of all fly-throughs."""
+    from statistics import median
+
+    d = load(results, rel)
+    rows = []
+    for m in methods:
+        for s in sorted({r["spp"] for r in d["rows"] if r["method"] == m}):
+            rs = [r for r in d["rows"] if r["method"] == m and r["spp"] == s]
+            if any("temporal_per_pair" not in r for r in rs):
+                raise PageError(f"{rel}: {m} at {s} spp has no per-pair record (re-run experiments/rae_temporal.py)")
+            pairs = [v for r in rs for v in r["temporal_per_pair"]]
+            frames = [v for r in rs for v in r["relmse_per_frame"]]
+            first = [r["level_per_frame"][0] for r in rs]
+            later = [lv for r in rs for lv in r["level_per_frame"][1:]]
+            rows.append([m, str(s), num(sum(pairs) / len(pairs), ".3g"), num(median(pairs), ".3g"),
+                         num(max(pairs), ".3g"), num(2 * sum(frames) / len(frames), ".3g"), num(max(frames), ".3g")]
+                        + ["/".join(num(median(lv[c] for lv in group), ".3f") for c in range(3))
+                           for group in (first, later)])
+    return table(["method", "spp", "temporal error", "median pair", "worst pair", "2 x RelMSE", "worst frame RelMSE",
+                  "level, frame 0 (R/G/B)", "level, frames 1-6"], rows, "lr" + "r" * 7)
+
+
 # the procedural fly-throughs (the paper-recipe weights, then registered as rae)
 bind("rae-temporal-means", rae_temporal_means, "rae_temporal.json", ["input", "oidn", "rae", "rae-per-frame"])
 # issue 34: the scene library's evaluation fly-throughs, the rate-general rae against the paper's recipe
 bind("rae-rates-temporal", rae_temporal_means, "rae_rates/temporal.json", ["input", "oidn", "rae-paper", "rae"])
+bind("rae-rates-frames", rae_frames, "rae_rates/temporal.json", ["oidn", "rae-paper", "rae", "rae-per-frame"])
 
 
 @renderer("rae-input-arms")
