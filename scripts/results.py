@@ -330,6 +330,23 @@ bind("rae-rates-temporal", rae_temporal_means, "rae_rates/temporal.json", ["inpu
 bind("rae-rates-frames", rae_frames, "rae_rates/temporal.json", ["oidn", "rae-paper", "rae", "rae-per-frame"])
 
 
+@renderer("rae-outlier-clamp")
+def _rae_outlier_clamp(results: Path) -> str:
+    """The outlier clamp's choice on the validation fly-throughs (experiments/rae_rates.py clamp)."""
+    d = load(results, "rae_rates/outlier_clamp.json")
+    spps = sorted(next(iter(d["factors"].values()))["per_spp"], key=int)
+    rows = []
+    for f, r in sorted(d["factors"].items(), key=lambda kv: float(kv[0])):
+        rows.append([("**" + f + "**" if f == d["chosen"] else f) + (" (off)" if float(f) == 0 else ""),
+                     num(r["relmse_geomean"], ".4g")] + [num(r["per_spp"][s], ".4g") for s in spps]
+                    + ["/".join(num(v, ".3f") for v in r["level"][s]) for s in spps])
+    return (table(["factor", "geometric mean", *(f"RelMSE {s} spp" for s in spps),
+                   *(f"level {s} spp (R/G/B)" for s in spps)], rows)
+            + f"\n\nChosen (bold): the lowest geometric mean among the factors whose level moves by less than "
+            f"{d['level_tolerance']:g} (every channel and rate) from the unclamped one. Weights `{d['init']}`, "
+            f"validation `{d['val_data']}`. Command: `{d['command']}`.")
+
+
 @renderer("rae-input-arms")
 def _rae_input_arms(results: Path) -> str:
     """Issue 34's input transforms at an equal budget: the validation curve of each arm."""

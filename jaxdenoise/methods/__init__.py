@@ -37,7 +37,7 @@ _REGISTRY: dict[str, tuple[str, dict[str, Any]]] = {
     "demc": ("jaxdenoise.methods.demc", {}),
     "demc-paper": ("jaxdenoise.methods.demc", {"recipe": "paper", "train_spps": (4,), "exposure": "none",
                                                "level_weight": 0.0}),
-    "rae": ("jaxdenoise.methods.rae", {}),
+    "rae": ("jaxdenoise.methods.rae", {"outlier_clamp": 8.0}),
     "rae-paper": ("jaxdenoise.methods.rae", {"recipe": "paper", "train_spps": (1,), "exposure": "none",
                                              "input_transform": "power", "rate_input": False}),
     "gradnet": ("jaxdenoise.methods.gradnet", {}),

@@ -20,7 +20,9 @@ Ours for rates beyond the paper's 1 spp (issue 34; the paper's recipe is ``rae-p
 `jaxdenoise.color.EXPOSURE_LEVEL` by the frame's exposure level (another whole-frame statistic) and
 the output divided by the same factor, so ``f(k x) = k f(x)``; with ``rate_input`` (the default) an
 eighth channel holds ``log2(spp) / RATE_SCALE`` (per pixel on an adaptively sampled frame);
-``input_transform = "linear"`` feeds the demodulated colour without the power (measured, not kept).
+``input_transform = "linear"`` feeds the demodulated colour without the power (measured, not kept);
+``outlier_clamp`` (8 for ``rae``, 0 in `Config`) cuts isolated input spikes (`suppress_outliers`), in
+place of the paper's path-space regularization (Sec. 3.1) that kept them out of its inputs.
 
 Network (Sec. 4.1-4.2, Fig. 2): five encoder stages (widths 32, 43, 57, 76, 101) of a 3x3 conv and
 a recurrent block (`jaxdenoise.nn.RecurrentBlock`: a conv on the input, concatenation with the
@@ -58,7 +60,7 @@ from ..pipeline import carried_stat, carried_stats
 
 __all__ = ["Config", "needs", "required", "init", "apply", "init_state", "step", "loss", "run_sequence", "inputs",
            "make_dataset", "batch", "frame_stats", "normalized_depth", "surface_mean", "exposure_scale",
-           "rate_channel", "INPUT_TRANSFORMS", "EXPOSURES", "RECIPES", "RATE_SCALE",
+           "rate_channel", "suppress_outliers", "INPUT_TRANSFORMS", "EXPOSURES", "RECIPES", "RATE_SCALE",
            "loss_terms", "log_kernel", "num_params", "TRAIN", "WEIGHTS", "AUX"]
 # Pixels of context a tile needs on each side (`jaxdenoise.tiling`), measured on a real frame
 # (docs/results/tiling/, re-measured with the 0.9.0 weights): max |tiled - whole| / (|whole| + 0.01)
@@ -98,6 +100,12 @@ class Config:
     # The sampling rate as an extra input channel, log2(spp) / RATE_SCALE (per pixel where the frame has
     # a sample-count map): one more input channel (ours; the paper trains and tests at 1 spp).
     rate_input: bool = True
+    # Outlier suppression (ours, issue 34; docs/methods/rae.md "Outliers"): a pixel's colour luminance
+    # (after the exposure scaling) is limited to `outlier_clamp` times the larger of the frame's level
+    # (`jaxdenoise.color.EXPOSURE_LEVEL`) and the brightest of its 8 neighbours, hue kept; 0 = off. It
+    # stands in for the paper's path-space regularization (Sec. 3.1), which removed "sparse
+    # high-intensity outliers" from its inputs at a small bias; our renders have them.
+    outlier_clamp: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})
     # The training recipe the weights folder is named after: "" (the default weights) or "paper"
     # (Sec. 5.3: 1-spp fly-throughs, the paper's input; registered as "rae-paper").
     recipe: str = dataclasses.field(default="", metadata={"training": True})
@@ -143,6 +151,9 @@ def _check(config: Config) -> None:
         raise JaxdenoiseError(f"rae: config.widths must give the five encoder stages, got {config.widths}")
     if config.decoder_widths is not None and len(config.decoder_widths) != 5:
         raise JaxdenoiseError(f"rae: config.decoder_widths must give five decoder stages, got {config.decoder_widths}")
+    if not config.outlier_clamp >= 0 or (config.outlier_clamp and config.exposure != "frame"):
+        raise JaxdenoiseError(f"rae: config.outlier_clamp must be >= 0 (0: off) and needs exposure 'frame' (the "
+                              f"frame's level sets its floor), got {config.outlier_clamp!r} with {config.exposure!r}")
     if not config.level_weight >= 0 or int(config.level_pool) < 1 or not config.level_eps > 0:
         raise JaxdenoiseError(f"rae: config.level_weight must be >= 0, config.level_pool >= 1 and config.level_eps > 0, "
                               f"got {config.level_weight!r}, {config.level_pool!r} and {config.level_eps!r}")
@@ -310,6 +321,8 @@ def inputs(frame: Any, config: Config, scale: Any = None) -> jax.Array:
     scale = exposure_scale(frame, config) if scale is None else scale
     c = jnp.asarray(get("color"), jnp.float32)
     c = jnp.where(jnp.isfinite(c), jnp.maximum(c, 0.0), 0.0) * scale
+    if config.outlier_clamp:
+        c = suppress_outliers(c, config.outlier_clamp)
     demod = color.demodulate(c, _albedo(get("albedo")), config.albedo_eps)
     parts = [color.gamma(demod, 1.0 / config.power) if config.input_transform == "power" else demod]
     has = (lambda f: f in frame) if isinstance(frame, dict) else (lambda f: False)
@@ -327,6 +340,20 @@ def inputs(frame: Any, config: Config, scale: Any = None) -> jax.Array:
         parts.append(rate_channel(frame, c.shape[:-1] + (1,)))
     x = jnp.concatenate(parts, -1)
     return jnp.where(jnp.isfinite(x), x, 0.0)
+
+
+def suppress_outliers(c: jax.Array, factor: float) -> jax.Array:
+    """``(..., H, W, 3)`` colour at the exposure level with each pixel's luminance limited to ``factor``
+    times the larger of `jaxdenoise.color.EXPOSURE_LEVEL` and the largest luminance among its 8
+    neighbours (edge pixels: their neighbours inside the image), hue kept (`Config.outlier_clamp`). An
+    isolated spike far above both is cut; a light, a highlight or an edge with a bright neighbour and
+    anything near the frame's level are left as they are. Homogeneous with the exposure scaling."""
+    lum = color.luminance(c)
+    lead, (h, w) = lum.shape[:-2], lum.shape[-2:]
+    pad = jnp.pad(lum, [(0, 0)] * len(lead) + [(1, 1), (1, 1)], constant_values=0.0)
+    shifts = [pad[..., 1 + dy:1 + dy + h, 1 + dx:1 + dx + w] for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
+    limit = factor * jnp.maximum(functools.reduce(jnp.maximum, shifts), color.EXPOSURE_LEVEL)
+    return c * jnp.where(lum > limit, limit / jnp.maximum(lum, 1e-30), 1.0)[..., None]
 
 
 def surface_mean(d: jax.Array) -> jax.Array:
