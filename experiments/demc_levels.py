@@ -13,8 +13,8 @@ its output scale with its input's exposure?
    whose rays all hit an area emitter (eroded by one pixel) over the reference's, on frames that show
    one (the check: within 5 %). ``--masks none`` measures every lit pixel (the pages before 0.9.2).
 2. **Halo**: pixels whose output (channel mean) is above 4x the reference's largest value in the
-   9 x 9 square around them, summed over the frames of a rate (issue 34's check counts surface
-   pixels; here every pixel).
+   9 x 9 square around them, summed over the frames of a rate: every pixel, and (with masks) the
+   surface pixels alone, which issue 34's check counts.
 3. **Exposure**: on the first frame of each folder at 4 spp, ``f(k x)`` against ``k f(x)`` for
    ``k`` in 1/16, 1/4, 4, 16: the largest ``|f(k x) - k f(x)|`` over the largest ``|k f(x)|``.
 
@@ -108,14 +108,15 @@ def emitter_level(out: np.ndarray, ref: np.ndarray, emitter: np.ndarray) -> list
     return [float(o[:, c].sum() / max(r[:, c].sum(), 1e-12)) for c in range(3)]
 
 
-def halo_pixels(out: np.ndarray, ref: np.ndarray) -> int:
-    """Pixels whose output (mean of the channels) is above `HALO` times the reference's largest value
-    in the `HALO_WINDOW` square around them: light drawn where the reference has none near (issue 34's
-    ring around a copper sphere)."""
+def halo_pixels(out: np.ndarray, ref: np.ndarray, surface: np.ndarray | None = None) -> int:
+    """Pixels (of ``surface``, an (H, W) bool mask, where given) whose output (mean of the channels) is
+    above `HALO` times the reference's largest value in the `HALO_WINDOW` square around them: light
+    drawn where the reference has none near (issue 34's ring around a copper sphere)."""
     from scipy.ndimage import maximum_filter
 
     o, r = np.asarray(out, np.float64).mean(-1), np.asarray(ref, np.float64)[..., :3].mean(-1)
-    return int(np.sum(o > HALO * maximum_filter(r, size=HALO_WINDOW, mode="nearest") + 1e-6))
+    halo = o > HALO * maximum_filter(r, size=HALO_WINDOW, mode="nearest") + 1e-6
+    return int(np.sum(halo if surface is None else halo & surface))
 
 
 def _trained_for(folder: str) -> str:
@@ -149,7 +150,7 @@ def measure(methods: list[str], folders: list[str], spps: list[int], masks: str 
                "levels": {}, "exposure": {}}
         rec["scores"], rec["halo"], rec["emitters"] = {}, {}, {}
         for folder in folders:
-            per_rate, scores, halos, emitters = {}, {}, {}, {}
+            per_rate, scores, halos, emitters, surface_halos = {}, {}, {}, {}, {}
             for shot in discover(folder):
                 ref = read_image(shot.reference)
                 for spp, renders in sorted(renders_by_spp(shot, set(spps)).items()):
@@ -160,6 +161,8 @@ def measure(methods: list[str], folders: list[str], spps: list[int], masks: str 
                     if mk is not None:
                         emitters.setdefault(str(spp), []).append(emitter_level(y, ref, mk["emitter"]))
                     halos.setdefault(str(spp), []).append(halo_pixels(y, ref))
+                    if mk is not None:
+                        surface_halos.setdefault(str(spp), []).append(halo_pixels(y, ref, mk["surface"]))
                     scores.setdefault(str(spp), []).append([float(metrics.relmse(y, ref[..., :3])),
                                                             float(metrics.ssim(y, ref[..., :3]))])
                     if spp == 4 and folder not in rec["exposure"]:
@@ -174,6 +177,8 @@ def measure(methods: list[str], folders: list[str], spps: list[int], masks: str 
             rec["levels"][folder] = per_rate
             rec["scores"][folder] = scores
             rec["halo"][folder] = halos
+            if masks != "none":
+                rec.setdefault("halo_surface", {})[folder] = surface_halos
             if masks != "none":
                 rec["emitters"][folder] = emitters
             print(name, folder, {s: np.round(np.median(v, 0), 3).tolist() for s, v in per_rate.items()}, flush=True)
@@ -198,9 +203,11 @@ def page(res: dict) -> str:
     for folder in res["folders"]:
         scored = all("scores" in rec for rec in res["methods"].values())  # (older runs recorded levels only)
         halo = all("halo" in rec for rec in res["methods"].values())
+        lit_masks = all(folder in rec.get("halo_surface", {}) for rec in res["methods"].values())
         lit = all(folder in rec.get("emitters", {}) for rec in res["methods"].values())
         lines += [f"## `{folder}`", "", "| method | spp | frames | R | G | B | furthest frame (channel) |"
-                  + (" RelMSE | SSIM |" if scored else "") + (" halo px |" if halo else "")
+                  + (" RelMSE | SSIM |" if scored else "")
+                  + ((" halo px (surface) |" if lit_masks else " halo px |") if halo else "")
                   + (" emitters R/G/B (frames) |" if lit else ""),
                   "|---|---:|---:|---:|---:|---:|---:|" + ("---:|---:|" if scored else "") + ("---:|" if halo else "")
                   + ("---:|" if lit else "")]
@@ -215,7 +222,8 @@ def page(res: dict) -> str:
                     sc = np.mean(rec["scores"][folder][spp], 0)
                     row += f" {num(float(sc[0]), '.4f')} | {num(float(sc[1]), '.3f')} |"
                 if halo:
-                    row += f" {sum(rec['halo'][folder][spp])} |"
+                    on = rec.get("halo_surface", {}).get(folder)
+                    row += f" {sum(rec['halo'][folder][spp])}" + (f" ({sum(on[spp])})" if on else "") + " |"
                 if lit:
                     shown = [e for e in rec["emitters"][folder][spp] if e is not None]
                     row += (" " + "/".join(num(float(v), ".3f") for v in np.median(shown, 0))
