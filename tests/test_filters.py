@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from jax.test_util import check_grads as _check_grads
 
-from jaxdenoise.filters import (DELTA, ZETA, FilterError, bilateral, cross_bilateral, cross_nlm,
+from jaxdenoise.filters import (DELTA, ZETA, FilterError, bilateral, clamp_outliers, cross_bilateral, cross_nlm,
                                 drop_constant_features, gaussian, prefilter_features, remove_spikes,
                                 spatiotemporal_cross_bilateral)
 
@@ -269,6 +269,33 @@ def test_remove_spikes_matches_reference_and_removes_a_firefly():
     out = remove_spikes(c)
     np.testing.assert_allclose(out, ref_spikes(c, 2.0), rtol=1e-6)
     assert float(np.max(out)) <= 1.0, "the 1e6 firefly must be replaced by the block median (<= 1)"
+
+
+def test_clamp_outliers_cuts_isolated_spikes_only():
+    """An isolated spike far above its neighbours and the floor is cut to factor x max(neighbours,
+    floor), its hue kept; a bright 2x2 patch (a light), a pixel below factor x floor and the pixels
+    around are left alone; leading axes pass through; bad arguments are refused by name."""
+    lum = lambda v: 0.2126 * v[..., 0] + 0.7152 * v[..., 1] + 0.0722 * v[..., 2]
+    c = np.full((8, 9, 3), 0.1, np.float32)
+    c[2, 2] = [300.0, 200.0, 100.0]  # an isolated firefly
+    c[5:7, 5:7] = 50.0  # a small light: every pixel has a bright neighbour
+    c[0, 8] = 0.6  # brighter than its neighbours, below 4x the floor
+    out = np.asarray(clamp_outliers(c, 4.0, 0.2))
+    np.testing.assert_allclose(lum(out[2, 2]), 0.8, rtol=1e-5)  # neighbours below the floor: 4 x 0.2
+    np.testing.assert_allclose(out[2, 2] / out[2, 2, 0], c[2, 2] / c[2, 2, 0], rtol=1e-5)  # hue
+    keep = np.ones((8, 9), bool)
+    keep[2, 2] = False
+    np.testing.assert_array_equal(out[keep], c[keep])
+    d = np.full((5, 5, 3), 0.02, np.float32)
+    d[2, 2], d[2, 3] = 1000.0, 2.0  # a spike beside a moderately bright neighbour: 4x that neighbour
+    np.testing.assert_allclose(lum(np.asarray(clamp_outliers(d, 4.0, 0.2))[2, 2]), 8.0, rtol=1e-5)
+    batch = np.stack([c, c[::-1]])[None]  # (1, 2, 8, 9, 3)
+    np.testing.assert_allclose(np.asarray(clamp_outliers(batch, 4.0, 0.2))[0, 1],
+                               np.asarray(clamp_outliers(c[::-1], 4.0, 0.2)))
+    for bad, match in (((c[..., :2], 4.0, 0.2), "'color'"), ((c, 0.0, 0.2), "'factor'"),
+                       ((c, 4.0, float("nan")), "'floor'")):
+        with pytest.raises(FilterError, match=match):
+            clamp_outliers(*bad)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -10,13 +10,14 @@ from .bilateral import (DELTA, ZETA, bilateral, cross_bilateral, drop_constant_f
                         spatiotemporal_cross_bilateral)
 from .gaussian import gaussian, gaussian_kernel_1d
 from .nlm import cross_nlm, prefilter_features
-from .spikes import remove_spikes
+from .spikes import clamp_outliers, remove_spikes
 
 __all__ = [
     "DELTA",
     "FilterError",
     "ZETA",
     "bilateral",
+    "clamp_outliers",
     "cross_bilateral",
     "cross_nlm",
     "drop_constant_features",

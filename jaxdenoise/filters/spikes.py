@@ -1,6 +1,13 @@
-"""Spike removal, Kalantari, Bako & Sen 2015 Sec. 4.3.
+"""Spike removal: after a filter, Kalantari, Bako & Sen 2015 Sec. 4.3; before a network, an outlier clamp.
 
 ``remove_spikes(image, *, n_std=2.0, block_radius=1) -> image``
+
+``clamp_outliers(color, factor, floor) -> color`` (ours, `rae`'s input: docs/methods/rae.md
+"Outliers"): each pixel's Rec. 709 luminance limited to ``factor`` times the larger of ``floor`` and
+the largest luminance among its 8 neighbours (neighbours outside the image count as 0), the hue kept.
+A noisy input's isolated spike (a firefly) far above both is cut; a light, a highlight or an edge (a
+bright neighbour) and anything below ``factor * floor`` pass unchanged. Unlike the filters' ``(H, W,
+C)`` convention it takes any leading axes (training batches of sequences), and ``C`` must be 3.
 
 After filtering, a pixel is a spike when any of its colour channels lies more than ``n_std``
 standard deviations from the mean of its ``3 x 3`` block (``block_radius=1``); a spike is replaced
@@ -23,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..arrays import compute_dtype, edge_blocks, is_concrete, median9
+from ..color import luminance
 from ._common import FilterError, as_image, check_radius
 
 
@@ -42,3 +50,20 @@ def remove_spikes(image, *, n_std: float = 2.0, block_radius: int = 1) -> jax.Ar
     # The median by a sorting network (equal to jnp.median, which sorts and runs ~10x slower on CPU).
     med = median9(jnp.moveaxis(block, -1, 0)) if block.shape[-1] == 9 else jnp.median(block, axis=-1)
     return jnp.where(spike, med, x).astype(out_dtype)
+
+
+def clamp_outliers(color, factor: float, floor: float) -> jax.Array:
+    """``(..., H, W, 3)`` colour with isolated luminance spikes cut (module docstring)."""
+    c = jnp.asarray(color)
+    if c.ndim < 3 or c.shape[-1] != 3:
+        raise FilterError(f"argument 'color' has shape {tuple(c.shape)}; expected (..., H, W, 3)")
+    for name, v in (("factor", factor), ("floor", floor)):
+        if not is_concrete(v) or not np.isfinite(v) or float(v) <= 0:
+            raise FilterError(f"argument '{name}' is {v!r}; expected a static finite number > 0")
+    lum = luminance(c)
+    lead, (h, w) = lum.shape[:-2], lum.shape[-2:]
+    pad = jnp.pad(lum, [(0, 0)] * len(lead) + [(1, 1), (1, 1)])
+    near = jnp.max(jnp.stack([pad[..., 1 + dy:1 + dy + h, 1 + dx:1 + dx + w]
+                              for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]), axis=0)
+    limit = float(factor) * jnp.maximum(near, float(floor))
+    return c * jnp.where(lum > limit, limit / jnp.maximum(lum, 1e-30), 1.0)[..., None]

@@ -21,8 +21,9 @@ Ours for rates beyond the paper's 1 spp (issue 34; the paper's recipe is ``rae-p
 the output divided by the same factor, so ``f(k x) = k f(x)``; with ``rate_input`` (the default) an
 eighth channel holds ``log2(spp) / RATE_SCALE`` (per pixel on an adaptively sampled frame);
 ``input_transform = "linear"`` feeds the demodulated colour without the power (measured, not kept);
-``outlier_clamp`` (8 for ``rae``, 0 in `Config`) cuts isolated input spikes (`suppress_outliers`), in
-place of the paper's path-space regularization (Sec. 3.1) that kept them out of its inputs.
+``outlier_clamp`` (8 for ``rae``, 0 in `Config`) cuts isolated input spikes
+(`jaxdenoise.filters.clamp_outliers`), in place of the paper's path-space regularization (Sec. 3.1)
+that kept them out of its inputs.
 
 Network (Sec. 4.1-4.2, Fig. 2): five encoder stages (widths 32, 43, 57, 76, 101) of a 3x3 conv and
 a recurrent block (`jaxdenoise.nn.RecurrentBlock`: a conv on the input, concatenation with the
@@ -54,13 +55,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import color, metrics, nn, view
+from ..filters import clamp_outliers
 from ..buffers import SAMPLE_COUNT_FIELD, Buffers
 from ..errors import JaxdenoiseError
 from ..pipeline import carried_stat, carried_stats
 
 __all__ = ["Config", "needs", "required", "init", "apply", "init_state", "step", "loss", "run_sequence", "inputs",
            "make_dataset", "batch", "frame_stats", "normalized_depth", "surface_mean", "exposure_scale",
-           "rate_channel", "suppress_outliers", "INPUT_TRANSFORMS", "EXPOSURES", "RECIPES", "RATE_SCALE",
+           "rate_channel", "INPUT_TRANSFORMS", "EXPOSURES", "RECIPES", "RATE_SCALE",
            "loss_terms", "log_kernel", "num_params", "TRAIN", "WEIGHTS", "AUX"]
 # Pixels of context a tile needs on each side (`jaxdenoise.tiling`), measured on a real frame
 # (docs/results/tiling/, re-measured with the 0.9.0 weights): max |tiled - whole| / (|whole| + 0.01)
@@ -155,8 +157,8 @@ def _check(config: Config) -> None:
         raise JaxdenoiseError(f"rae: config.outlier_clamp must be >= 0 (0: off) and needs exposure 'frame' (the "
                               f"frame's level sets its floor), got {config.outlier_clamp!r} with {config.exposure!r}")
     if not config.level_weight >= 0 or int(config.level_pool) < 1 or not config.level_eps > 0:
-        raise JaxdenoiseError(f"rae: config.level_weight must be >= 0, config.level_pool >= 1 and config.level_eps > 0, "
-                              f"got {config.level_weight!r}, {config.level_pool!r} and {config.level_eps!r}")
+        raise JaxdenoiseError(f"rae: config.level_weight must be >= 0, config.level_pool >= 1 and config.level_eps "
+                              f"> 0, got {config.level_weight!r}, {config.level_pool!r} and {config.level_eps!r}")
     for name, allowed in (("input_transform", INPUT_TRANSFORMS), ("exposure", EXPOSURES), ("recipe", RECIPES)):
         if getattr(config, name) not in allowed:
             raise JaxdenoiseError(f"rae: config.{name} is {getattr(config, name)!r}; expected one of {allowed}")
@@ -322,7 +324,7 @@ def inputs(frame: Any, config: Config, scale: Any = None) -> jax.Array:
     c = jnp.asarray(get("color"), jnp.float32)
     c = jnp.where(jnp.isfinite(c), jnp.maximum(c, 0.0), 0.0) * scale
     if config.outlier_clamp:
-        c = suppress_outliers(c, config.outlier_clamp)
+        c = clamp_outliers(c, config.outlier_clamp, color.EXPOSURE_LEVEL)
     demod = color.demodulate(c, _albedo(get("albedo")), config.albedo_eps)
     parts = [color.gamma(demod, 1.0 / config.power) if config.input_transform == "power" else demod]
     has = (lambda f: f in frame) if isinstance(frame, dict) else (lambda f: False)
@@ -340,20 +342,6 @@ def inputs(frame: Any, config: Config, scale: Any = None) -> jax.Array:
         parts.append(rate_channel(frame, c.shape[:-1] + (1,)))
     x = jnp.concatenate(parts, -1)
     return jnp.where(jnp.isfinite(x), x, 0.0)
-
-
-def suppress_outliers(c: jax.Array, factor: float) -> jax.Array:
-    """``(..., H, W, 3)`` colour at the exposure level with each pixel's luminance limited to ``factor``
-    times the larger of `jaxdenoise.color.EXPOSURE_LEVEL` and the largest luminance among its 8
-    neighbours (edge pixels: their neighbours inside the image), hue kept (`Config.outlier_clamp`). An
-    isolated spike far above both is cut; a light, a highlight or an edge with a bright neighbour and
-    anything near the frame's level are left as they are. Homogeneous with the exposure scaling."""
-    lum = color.luminance(c)
-    lead, (h, w) = lum.shape[:-2], lum.shape[-2:]
-    pad = jnp.pad(lum, [(0, 0)] * len(lead) + [(1, 1), (1, 1)], constant_values=0.0)
-    shifts = [pad[..., 1 + dy:1 + dy + h, 1 + dx:1 + dx + w] for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
-    limit = factor * jnp.maximum(functools.reduce(jnp.maximum, shifts), color.EXPOSURE_LEVEL)
-    return c * jnp.where(lum > limit, limit / jnp.maximum(lum, 1e-30), 1.0)[..., None]
 
 
 def surface_mean(d: jax.Array) -> jax.Array:
