@@ -992,6 +992,7 @@ STUDIES: dict[str, tuple[str, str]] = {
     "demc_rates/demc_levels.md": ("demc_levels", "demc_rates/demc_levels.json"),
     "rae_rates/demc_levels.md": ("demc_levels", "rae_rates/demc_levels.json"),
     "rae_rates/level_term/demc_levels.md": ("demc_levels", "rae_rates/level_term/demc_levels.json"),
+    "level_correction/level_correction.md": ("level_correction", "level_correction/level_correction.json"),
 }
 
 # Pages written by hand that state no measured number of their own (they point to the pages above).
