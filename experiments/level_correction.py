@@ -15,7 +15,8 @@ sigma ``--sigma``; ``e`` 1 % of the frame's exposure level). Three targets ``t``
 For each method and frame of ``--data`` at each rate: RelMSE, SSIM and the colour level
 (`demc_levels.frame_levels`, every lit pixel, no mask) of the output and of each correction.
 
-    python experiments/level_correction.py --data data/library_val --methods demc,rae --out docs/results/level_correction
+    python experiments/level_correction.py --data data/library_val --methods demc,rae \
+        --out docs/results/level_correction
 
 Writes ``level_correction.json`` and ``level_correction.md`` into ``--out``.
 """
@@ -90,7 +91,8 @@ def page(res: dict) -> str:
              "(an oracle with noise-free low frequencies). RelMSE and SSIM: means over frames; level: the "
              "median over frames of each frame's median 15x15 box ratio to the reference, R/G/B, every lit "
              "pixel (experiments/level_correction.py).", "",
-             "| method | spp | correction | RelMSE | x none | SSIM | level R/G/B |", "|---|---:|---|---:|---:|---:|---|"]
+             "| method | spp | correction | RelMSE | x none | SSIM | level R/G/B |",
+             "|---|---:|---|---:|---:|---:|---|"]
     for name, rows in res["methods"].items():
         for spp in sorted(rows["none"], key=int):
             base = float(np.mean([r["relmse"] for r in rows["none"][spp]]))

@@ -23,7 +23,8 @@ library's validation fly-throughs (``--val-data``, every rate, state carried) ev
 (`jaxdenoise.methods.rae.Config.level_weight`, ``--level-weight``) at a constant Adam rate (``--lr``)
 on crops of ``--seed``, in ``OUT/level{W}_lr{LR}_s{SEED}``:
 
-    python experiments/rae_rates.py level --level-weight 1 --lr 1e-4 --seed 3 --steps 300 --init jaxdenoise/weights/rae --out runs/rae_level
+    python experiments/rae_rates.py level --level-weight 1 --lr 1e-4 --seed 3 --steps 300 \
+        --init jaxdenoise/weights/rae --out runs/rae_level
 
 ``clamp`` chooses the outlier clamp (`jaxdenoise.methods.rae.Config.outlier_clamp`) of the weights in
 ``--init`` on the validation fly-throughs only, with no training: for each factor in ``--factors`` the
