@@ -292,10 +292,14 @@ def test_clamp_outliers_cuts_isolated_spikes_only():
     batch = np.stack([c, c[::-1]])[None]  # (1, 2, 8, 9, 3)
     np.testing.assert_allclose(np.asarray(clamp_outliers(batch, 4.0, 0.2))[0, 1],
                                np.asarray(clamp_outliers(c[::-1], 4.0, 0.2)))
-    for bad, match in (((c[..., :2], 4.0, 0.2), "'color'"), ((c, 0.0, 0.2), "'factor'"),
-                       ((c, 4.0, float("nan")), "'floor'")):
+    for bad, match in (((c[..., :2], 4.0, 0.2), "'color'"), ((c, -1.0, 0.2), "'factor'"),
+                       ((c, 4.0, float("nan")), "'floor'"), ((c, 4.0, 0.0), "'floor'")):
         with pytest.raises(FilterError, match=match):
             clamp_outliers(*bad)
+    bad_pixel = c.copy()
+    bad_pixel[1, 1, 0] = np.nan
+    with pytest.raises(FilterError, match="argument 'color' has 1 NaN/Inf"):
+        clamp_outliers(bad_pixel, 4.0, 0.2)
 
 
 # ----------------------------------------------------------------------------------------------

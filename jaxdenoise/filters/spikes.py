@@ -6,7 +6,8 @@
 "Outliers"): each pixel's Rec. 709 luminance limited to ``factor`` times the larger of ``floor`` and
 the largest luminance among its 8 neighbours (neighbours outside the image count as 0), the hue kept.
 A noisy input's isolated spike (a firefly) far above both is cut; a light, a highlight or an edge (a
-bright neighbour) and anything below ``factor * floor`` pass unchanged. Unlike the filters' ``(H, W,
+bright neighbour) and anything below ``factor * floor`` pass unchanged (``factor`` 0: every lit pixel
+is cut to black). Unlike the filters' ``(H, W,
 C)`` convention it takes any leading axes (training batches of sequences), and ``C`` must be 3.
 
 After filtering, a pixel is a spike when any of its colour channels lies more than ``n_std``
@@ -54,16 +55,20 @@ def remove_spikes(image, *, n_std: float = 2.0, block_radius: int = 1) -> jax.Ar
 
 def clamp_outliers(color, factor: float, floor: float) -> jax.Array:
     """``(..., H, W, 3)`` colour with isolated luminance spikes cut (module docstring)."""
+    shape = tuple(np.shape(color))
+    if len(shape) < 3 or shape[-1] != 3:
+        raise FilterError(f"argument 'color' has shape {shape}; expected (..., H, W, 3)")
+    as_image(jnp.reshape(color, (-1,) + shape[-2:]), "color")  # sizes and (concrete) NaN/Inf checked by name
     c = jnp.asarray(color)
-    if c.ndim < 3 or c.shape[-1] != 3:
-        raise FilterError(f"argument 'color' has shape {tuple(c.shape)}; expected (..., H, W, 3)")
-    for name, v in (("factor", factor), ("floor", floor)):
-        if not is_concrete(v) or not np.isfinite(v) or float(v) <= 0:
-            raise FilterError(f"argument '{name}' is {v!r}; expected a static finite number > 0")
+    for name, v, least in (("factor", factor, 0.0), ("floor", floor, 1e-30)):
+        if not is_concrete(v) or not np.isfinite(v) or float(v) < least:
+            raise FilterError(f"argument '{name}' is {v!r}; expected a static finite number "
+                              + (">= 0" if least == 0 else "> 0"))
     lum = luminance(c)
     lead, (h, w) = lum.shape[:-2], lum.shape[-2:]
     pad = jnp.pad(lum, [(0, 0)] * len(lead) + [(1, 1), (1, 1)])
     near = jnp.max(jnp.stack([pad[..., 1 + dy:1 + dy + h, 1 + dx:1 + dx + w]
                               for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]), axis=0)
     limit = float(factor) * jnp.maximum(near, float(floor))
-    return c * jnp.where(lum > limit, limit / jnp.maximum(lum, 1e-30), 1.0)[..., None]
+    cut = lum > limit  # then lum > 0: the inner where keeps the unused branch's gradient finite at lum = 0
+    return c * jnp.where(cut, limit / jnp.where(cut, lum, 1.0), 1.0)[..., None]

@@ -466,6 +466,10 @@ FILTERS: dict[str, FilterSpec] = {
     "remove_spikes": FilterSpec(
         lambda b, p: _filters_mod().remove_spikes(b.color, n_std=p),
         frozenset({"color"}), ("n_std",), static_param=True),
+    # scales a spike down keeping its hue: not a convex combination of input pixels
+    "clamp_outliers": FilterSpec(
+        lambda b, p: _filters_mod().clamp_outliers(b.color, p, 0.2),
+        frozenset({"color"}), ("factor",), static_param=True, convex=False),
 }
 # Public names of jaxdenoise.filters that are not image filters (helpers and the error type).
 FILTER_HELPERS = frozenset({"FilterError", "gaussian_kernel_1d", "drop_constant_features", "DELTA", "ZETA"})
