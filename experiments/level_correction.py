@@ -46,7 +46,7 @@ def correct(y: np.ndarray, target: np.ndarray, sigma: float, eps: float) -> np.n
     return np.asarray(y * (gaussian(target, sigma) + eps) / (gaussian(y, sigma) + eps))
 
 
-def measure(methods: list[str], folder: str, spps: list[int], sigma: float) -> dict:
+def measure_corrections(methods: list[str], folder: str, spps: list[int], sigma: float) -> dict:
     import jax.numpy as jnp
 
     from jaxdenoise import color, metrics
@@ -115,7 +115,7 @@ def main(argv=None) -> None:
     ap.add_argument("--sigma", type=float, default=16.0)
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
-    res = measure(args.methods.split(","), args.data, [int(s) for s in args.spps.split(",")], args.sigma)
+    res = measure_corrections(args.methods.split(","), args.data, [int(s) for s in args.spps.split(",")], args.sigma)
     res["command"] = "python experiments/level_correction.py " + " ".join(argv if argv is not None else sys.argv[1:])
     all_measured(res, "level_correction.json")
     print(write_study(Path(args.out), "level_correction.json", "level_correction.md", res, page))
