@@ -179,7 +179,6 @@ def measure(methods: list[str], folders: list[str], spps: list[int], masks: str 
             rec["halo"][folder] = halos
             if masks != "none":
                 rec.setdefault("halo_surface", {})[folder] = surface_halos
-            if masks != "none":
                 rec["emitters"][folder] = emitters
             print(name, folder, {s: np.round(np.median(v, 0), 3).tolist() for s, v in per_rate.items()}, flush=True)
         res["methods"][name] = rec

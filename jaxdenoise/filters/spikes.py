@@ -7,8 +7,8 @@
 the largest luminance among its 8 neighbours (neighbours outside the image count as 0), the hue kept.
 A noisy input's isolated spike (a firefly) far above both is cut; a light, a highlight or an edge (a
 bright neighbour) and anything below ``factor * floor`` pass unchanged (``factor`` 0: every lit pixel
-is cut to black). Unlike the filters' ``(H, W,
-C)`` convention it takes any leading axes (training batches of sequences), and ``C`` must be 3.
+is cut to black). Unlike the filters' ``(H, W, C)`` convention it takes any leading axes (training
+batches of sequences), and ``C`` must be 3.
 
 After filtering, a pixel is a spike when any of its colour channels lies more than ``n_std``
 standard deviations from the mean of its ``3 x 3`` block (``block_radius=1``); a spike is replaced

@@ -55,9 +55,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import color, metrics, nn, view
-from ..filters import clamp_outliers
 from ..buffers import SAMPLE_COUNT_FIELD, Buffers
 from ..errors import JaxdenoiseError
+from ..filters import clamp_outliers
 from ..pipeline import carried_stat, carried_stats
 
 __all__ = ["Config", "needs", "required", "init", "apply", "init_state", "step", "loss", "run_sequence", "inputs",
