@@ -11,8 +11,8 @@ over frames and the temporal error (`jaxdenoise.metrics.temporal_error`), averag
 each row also keeps the RelMSE of every frame and the temporal error of every consecutive pair
 (`jaxdenoise.metrics.temporal_error_per_frame`), so a recurrent method's warm-up (its first frame
 from a zero state) can be told from its steady state, and every frame's colour level per channel
-(`demc_levels.frame_levels`: the median box-mean ratio to the reference over lit pixels, emitters
-included).
+(`demc_levels.frame_levels`: the median box-mean ratio to the reference over the lit surface pixels
+of the frame's rebuilt scene, issue 34's measure; ``--masks none``: every lit pixel).
 """
 from __future__ import annotations
 
@@ -33,7 +33,7 @@ from jaxdenoise.data import discover, renders_by_spp, sequences  # noqa: E402
 from jaxdenoise.fsutil import write_json  # noqa: E402
 from jaxdenoise.io import read_buffers, read_image  # noqa: E402
 from jaxdenoise.methods import get  # noqa: E402
-from demc_levels import frame_levels  # noqa: E402
+from demc_levels import frame_levels, scene_masks, scene_of  # noqa: E402
 
 
 def main() -> None:
@@ -42,6 +42,9 @@ def main() -> None:
     ap.add_argument("--methods", default="input,gaussian,lbf,oidn,rae,rae-per-frame")
     ap.add_argument("--weights", default=None, help="rae weights folder (default: shipped)")
     ap.add_argument("--out", default="docs/results/rae_temporal.json")
+    ap.add_argument("--masks", default="scene", choices=("scene", "none"),
+                    help="the level over surface pixels (scene: each frame's scene rebuilt with its own camera, "
+                    "`demc_levels.scene_masks`) or over every lit pixel (none)")
     args = ap.parse_args()
     seqs, _ = sequences(discover(args.data))
     if not seqs:
@@ -54,10 +57,14 @@ def main() -> None:
             print(f"skipping {n}: {get(base).requirements()}")
             continue
         fns[n] = load(base, args.weights if base == "rae" else None)
-    res: dict = {"data": args.data, "sequences": [str(s.folder) for s in seqs], "rows": []}
+    res: dict = {"data": args.data, "sequences": [str(s.folder) for s in seqs], "rows": [], "masks": args.masks}
     for seq in seqs:
         by_spp = [renders_by_spp(s) for s in seq.shots]
         refs = np.stack([np.asarray(read_image(s.reference), np.float32)[..., :3] for s in seq.shots])
+        surfaces = [None] * len(refs)
+        if args.masks == "scene":  # one mask per frame (its own camera), the same at every rate
+            first = [b[min(b)][0].path for b in by_spp]
+            surfaces = [scene_masks(*scene_of(p.parent, p.name))["surface"] for p in first]
         for spp in sorted(set.intersection(*(set(b) for b in by_spp))):
             frames = [read_buffers(b[spp][0].path)[0] for b in by_spp]
             for n, fn in fns.items():
@@ -78,7 +85,7 @@ def main() -> None:
                        "ssim": float(np.mean([metrics.ssim(o, r) for o, r in zip(outs, refs)])),
                        "temporal": float(np.mean(per_pair)),
                        "relmse_per_frame": per_frame, "temporal_per_pair": per_pair.tolist(),
-                       "level_per_frame": [frame_levels(o, r) for o, r in zip(outs, refs)]}
+                       "level_per_frame": [frame_levels(o, r, m) for o, r, m in zip(outs, refs, surfaces)]}
                 res["rows"].append(row)
                 print(row, flush=True)
     write_json(Path(args.out), res)
