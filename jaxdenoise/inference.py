@@ -207,8 +207,12 @@ def buffers_read(m: Method, buffers: Buffers) -> list[str]:
 
 def missing_optional(m: Method, buffers: Buffers) -> list[str]:
     """The optional buffers ``m`` can use that this frame lacks: it runs without them (OIDN and the
-    bilateral filters on colour alone, `rae` with roughness 1, ...), which changes its result."""
-    return sorted((m.needs() - m.required()) - buffers.present())
+    bilateral filters on colour alone, `rae` with roughness 1, ...), which changes its result. A
+    variance (``*_var``) is not counted on a frame of one sample per pixel, which cannot have one."""
+    lacking = (m.needs() - m.required()) - buffers.present()
+    if buffers.spp is not None and float(np.max(np.asarray(buffers.spp))) < 2:
+        lacking = {f for f in lacking if not f.endswith("_var")}
+    return sorted(lacking)
 
 
 def notes(m: Method, buffers: Buffers, *, sequence: bool = False) -> list[str]:

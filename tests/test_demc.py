@@ -33,7 +33,37 @@ def _batch(n, size, seed=0):
 
 
 def test_needs_exactly_colour_and_the_four_features():
-    assert get("demc").needs() == {"color", "normal", "position", "albedo", "albedo2"}
+    """The paper's inputs; `demc` (``keep_exact``) may read the colour variance too, never requires it."""
+    four = {"color", "normal", "position", "albedo", "albedo2"}
+    assert get("demc-paper").needs() == four and get("demc").required() == four
+    assert get("demc").needs() == four | {"color_var"} and get("demc").config.keep_exact
+    assert not get("demc-paper").config.keep_exact
+
+
+def test_keep_exact_pixels_keeps_the_input_where_the_samples_agreed():
+    """`demc.keep_exact_pixels`: at >= 2 spp a pixel with zero variance in every channel and a lit
+    colour keeps its input; a pixel with variance in one channel, a black one, a 1-spp frame, a frame
+    without variance keep the network's output; a batch takes each frame's own rate."""
+    c = np.full((4, 5, 3), 0.5, np.float32)
+    v = np.full((4, 5, 3), 0.01, np.float32)
+    v[1, 2] = 0.0  # exact, lit: kept
+    v[2, 3] = [0.0, 0.0, 0.01]  # one channel varies: denoised
+    v[3, 4], c[3, 4] = 0.0, 0.0  # exact but black (no sample hit anything lit): denoised
+    out = np.full((4, 5, 3), 9.0, np.float32)
+    got = np.asarray(demc.keep_exact_pixels(jnp.asarray(out), Buffers(color=c, color_var=v, spp=4)))
+    want = out.copy()
+    want[1, 2] = c[1, 2]
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(demc.keep_exact_pixels(out, Buffers(color=c, color_var=v, spp=1)), out)
+    np.testing.assert_array_equal(demc.keep_exact_pixels(out, Buffers(color=c, spp=4)), out)
+    # a 1-spp frame cannot have a variance: not reported as a missing optional buffer there
+    from jaxdenoise.inference import missing_optional
+    assert missing_optional(get("demc"), Buffers(color=c, spp=1)) == []
+    assert missing_optional(get("demc"), Buffers(color=c, spp=4)) == ["color_var"]
+    batch = {"color": np.stack([c, c]), "color_var": np.stack([v, v]), "spp": np.asarray([1.0, 16.0])}
+    got = np.asarray(demc.keep_exact_pixels(jnp.asarray(np.stack([out, out])), batch))
+    np.testing.assert_array_equal(got[0], out)
+    np.testing.assert_array_equal(got[1], want)
 
 
 # 1x1 and 7x5 under `slow` (19 s and 29 s of compilation, 26th session): the stability suite runs

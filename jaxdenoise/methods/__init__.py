@@ -34,7 +34,7 @@ _REGISTRY: dict[str, tuple[str, dict[str, Any]]] = {
     "nlm": ("jaxdenoise.methods.bilateral", {"filter": "nlm"}),
     "poisson-l2": ("jaxdenoise.methods.poisson", {"norm": "l2"}),
     "poisson-l1": ("jaxdenoise.methods.poisson", {"norm": "l1"}),
-    "demc": ("jaxdenoise.methods.demc", {}),
+    "demc": ("jaxdenoise.methods.demc", {"keep_exact": True}),
     "demc-paper": ("jaxdenoise.methods.demc", {"recipe": "paper", "train_spps": (4,), "exposure": "none",
                                                "level_weight": 0.0}),
     "rae": ("jaxdenoise.methods.rae", {"outlier_clamp": 8.0}),

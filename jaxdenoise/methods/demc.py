@@ -57,9 +57,9 @@ from ..nn.state import call
 from ..errors import JaxdenoiseError
 from ..pipeline import carried_stat, carried_stats
 
-__all__ = ["Config", "needs", "init", "init_from_data", "apply", "forward", "loss", "relative_loss", "make_dataset", "batch",
-           "inputs", "frame_stats", "position_moments", "exposure_scale", "num_params", "widths_of",
-           "FEATURES", "TRAIN", "FROZEN", "WEIGHTS"]
+__all__ = ["Config", "needs", "required", "keep_exact_pixels", "init", "init_from_data", "apply", "forward", "loss",
+           "relative_loss", "make_dataset", "batch", "inputs", "frame_stats", "position_moments", "exposure_scale",
+           "num_params", "widths_of", "FEATURES", "TRAIN", "FROZEN", "WEIGHTS"]
 # Pixels of context a tile needs on each side (`jaxdenoise.tiling`), measured on a real frame
 # (docs/results/tiling/): with the 0.8.1 weights max |tiled - whole| / (|whole| + 0.01) of 1.3e-3 and
 # RelMSE -0.00 % at 128 px, 1.4e-2 and -0.10 % at 96, 7.8e-2 and -0.82 % at 64 (the 0.8.0 weights:
@@ -118,6 +118,11 @@ class Config:
     # term's optimum is the mean of the block means an input admits (at 1 spp still uncertain) while
     # the per-pixel term stays Eq. 5.
     level_scale: str = dataclasses.field(default="reference", metadata={"training": True})
+    # Pixels whose samples all agreed (ours, issue 33; docs/methods/demc.md "Exact pixels"): with
+    # `keep_exact`, a pixel of a frame of >= 2 spp whose colour variance is 0 in every channel and whose
+    # colour is not black keeps its input (a directly seen emitter, a constant background): its
+    # estimate has no noise to remove. Reads `color_var` where the frame has it; inference only.
+    keep_exact: bool = dataclasses.field(default=False, metadata={"fine_tune": True})
     train_crop: int = 96
     train_batch: int = 32
 
@@ -159,8 +164,13 @@ def _check(config: Config) -> None:
 
 
 def needs(config: Config) -> frozenset[str]:
-    """Exactly the noisy colour and the four features of Sec. 3.1."""
-    return frozenset({"color", *FEATURES})
+    """The noisy colour and the four features of Sec. 3.1; with ``keep_exact`` the colour variance."""
+    return frozenset({"color", *FEATURES} | ({"color_var"} if config.keep_exact else set()))
+
+
+def required(config: Config) -> frozenset[str]:
+    """`needs` without the colour variance (a 1-spp frame has none; `keep_exact` then does nothing)."""
+    return needs(config) - {"color_var"}
 
 
 # -- network -------------------------------------------------------------------------------------
@@ -396,8 +406,26 @@ def _run(params, buffers, config, train=False):
 
 def apply(params: dict, buffers: Buffers, config: Config) -> jax.Array:
     """Denoise one frame or a batch (leading axes): HDR ``(..., H, W, 3)`` (inference mode: the
-    BatchNorm running statistics)."""
-    return _run(params, buffers, config)
+    BatchNorm running statistics); with ``keep_exact``, `keep_exact_pixels`."""
+    out = _run(params, buffers, config)
+    return keep_exact_pixels(out, buffers) if config.keep_exact else out
+
+
+def keep_exact_pixels(out: jax.Array, buffers: Any) -> jax.Array:
+    """``out`` with the input's colour where the frame (``spp`` >= 2) says a pixel's samples all agreed:
+    ``color_var`` 0 in every channel and the colour not black (`Config.keep_exact`). Unchanged for a
+    frame without ``color_var`` or ``spp``. By the Buffers contract (``color_var``: the variance of the
+    pixel's samples) such a pixel's estimate is exact; a renderer that writes 0 for an unknown variance
+    would have every lit pixel kept."""
+    get = (lambda f: getattr(buffers, f, None)) if isinstance(buffers, Buffers) else buffers.get
+    var, spp = get("color_var"), get("spp")
+    if var is None or spp is None:
+        return out
+    c = jnp.asarray(get("color"), out.dtype)
+    exact = (jnp.max(jnp.asarray(var), axis=-1, keepdims=True) == 0) & (jnp.max(c, axis=-1, keepdims=True) > 0)
+    spp = jnp.asarray(spp, jnp.float32)
+    many = jnp.reshape(spp, spp.shape + (1,) * (out.ndim - spp.ndim)) >= 2 if spp.ndim else spp >= 2
+    return jnp.where(exact & many, c, out)
 
 
 def loss(params: dict, batch: dict, config: Config):
