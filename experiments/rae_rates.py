@@ -97,44 +97,38 @@ def _train_arm(arm: str, data, out: Path, args, steps: int, name: str | None = N
     return rec
 
 
-def sweep(args, field: str, values: list[float]) -> dict:
-    """Validation RelMSE (state carried, as training selects) and the single frames' colour level on
-    surface pixels (`demc_levels.measure`) of the weights in ``--init`` with ``field`` set to each of
-    ``values`` (an inference setting: no training)."""
+def choose_clamp(args) -> dict:
+    """The ``clamp`` subcommand (module docstring): for each factor the validation RelMSE (state carried,
+    as training selects) and the single frames' colour level on surface pixels (`demc_levels.measure`)
+    of the weights in ``--init``, no training; then the rule."""
     import tempfile
 
     from demc_levels import measure
     from jaxdenoise.api import resolve
     from jaxdenoise.train import load_validation, validate
 
+    factors = [float(f) for f in args.factors.split(",")]
     base, params = resolve("rae", args.init)
     frames = load_validation(base, args.val_data)
-    res = {"init": args.init, "val_data": args.val_data, "field": field, "factors": {}}
+    res = {"init": args.init, "val_data": args.val_data, "level_tolerance": args.level_tolerance, "factors": {}}
     with tempfile.TemporaryDirectory() as tmp:
         folders = {}
-        for f in values:
-            m = base.with_config(**{field: f})
+        for f in factors:
+            m = base.with_config(outlier_clamp=f)
             v = validate(m, params, frames)
             folders[f] = checkpoint.save(Path(tmp) / f"k{f:g}", params, m.config, {"method": "rae"})
             res["factors"][f"{f:g}"] = {k: v[k] for k in ("relmse", "relmse_geomean", "per_spp", "ssim")}
-            print(f"{field} {f:g}", {k: v[k] for k in ("relmse_geomean", "per_spp")}, flush=True)
+            print(f"{f:g}", {k: v[k] for k in ("relmse_geomean", "per_spp")}, flush=True)
         spps = sorted({int(fr["spp"]) for fr in frames})
-        lv = measure([f"k{f:g}={folders[f]}" for f in values], [args.val_data], spps)
-    for f in values:
+        lv = measure([f"k{f:g}={folders[f]}" for f in factors], [args.val_data], spps)
+    for f in factors:
         levels = lv["methods"][f"k{f:g}"]["levels"][args.val_data]
         res["factors"][f"{f:g}"]["level"] = {s: np.median(v, 0).tolist() for s, v in levels.items()}
-    res["command"] = " ".join(["python", "experiments/rae_rates.py", *sys.argv[1:]])
-    return res
-
-
-def choose_clamp(args) -> dict:
-    """The ``clamp`` subcommand (module docstring): the `sweep` of ``outlier_clamp`` and its rule."""
-    factors = [float(f) for f in args.factors.split(",")]
-    res = sweep(args, "outlier_clamp", factors) | {"level_tolerance": args.level_tolerance}
     ref = res["factors"][f"{factors[0]:g}"]["level"]
     ok = [f for f in factors if all(abs(a - b) < args.level_tolerance for s in ref
                                      for a, b in zip(res["factors"][f"{f:g}"]["level"][s], ref[s]))]
     res["chosen"] = f"{min(ok, key=lambda f: res['factors'][f'{f:g}']['relmse_geomean']):g}"
+    res["command"] = " ".join(["python", "experiments/rae_rates.py", *sys.argv[1:]])
     return res
 
 

@@ -321,8 +321,11 @@ def forward(params: dict, x_color: jax.Array, x_feat: jax.Array, config: Config,
     return (y, updates) if train else y
 
 
-def _getter(buffers: Any):
-    return (lambda f: getattr(buffers, f)) if isinstance(buffers, Buffers) else (lambda f: buffers[f])
+def _getter(buffers: Any, optional: bool = False):
+    """A field reader for a `Buffers` or a dict frame; ``optional``: None for a field it lacks."""
+    if isinstance(buffers, Buffers):
+        return lambda f: getattr(buffers, f, None)
+    return buffers.get if optional else (lambda f: buffers[f])
 
 
 def position_moments(p: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -417,7 +420,7 @@ def keep_exact_pixels(out: jax.Array, buffers: Any) -> jax.Array:
     frame without ``color_var`` or ``spp``. By the Buffers contract (``color_var``: the variance of the
     pixel's samples) such a pixel's estimate is exact; a renderer that writes 0 for an unknown variance
     would have every lit pixel kept."""
-    get = (lambda f: getattr(buffers, f, None)) if isinstance(buffers, Buffers) else buffers.get
+    get = _getter(buffers, optional=True)
     var, spp = get("color_var"), get("spp")
     if var is None or spp is None:
         return out
