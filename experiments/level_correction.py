@@ -19,6 +19,23 @@ For each method and frame of ``--data`` at each rate: RelMSE, SSIM and the colou
         --out docs/results/level_correction
 
 Writes ``level_correction.json`` and ``level_correction.md`` into ``--out``.
+
+``--choose WEIGHTS`` instead chooses `demc`'s inference settings for the weights folder ``WEIGHTS``
+(docs/methods/demc.md "Colour level at inference"), no training, on validation folders only
+(``--data``, comma-separated), scored as `demc_levels.measure` scores (surface pixels of each frame's
+rebuilt scene):
+
+1. ``exact_window`` (the 1-spp exact-pixel rule, `Config.exact_window`) over `WINDOWS`, ``keep_exact``
+   on, ``match_level`` off: the lowest geometric mean over (folder, rate) of the mean RelMSE;
+2. with that window, ``match_level`` (sigma) x ``match_max_gain`` x ``match_spike`` over `SIGMAS`,
+   `GAINS`, `SPIKES`, and off (0): among the settings whose per-channel level (median over frames)
+   is within ``--level-tolerance`` of 1 at every folder and rate, the lowest geometric mean; off when
+   none is.
+
+    python experiments/level_correction.py --choose jaxdenoise/weights/demc \
+        --data data/library_val,data/procedural_val --out docs/results/level_correction
+
+Writes ``choice.json`` and ``choice.md``.
 """
 from __future__ import annotations
 
@@ -37,13 +54,10 @@ from common import all_measured, num, write_study  # noqa: E402
 from demc_levels import frame_levels  # noqa: E402
 
 TARGETS = {"input": 8.0, "input K2": 2.0, "reference": None}
-
-
-def correct(y: np.ndarray, target: np.ndarray, sigma: float, eps: float) -> np.ndarray:
-    """``y * (G(target) + eps) / (G(y) + eps)`` per channel (module docstring)."""
-    from jaxdenoise.filters import gaussian
-
-    return np.asarray(y * (gaussian(target, sigma) + eps) / (gaussian(y, sigma) + eps))
+WINDOWS = (0, 3, 5, 7)
+SIGMAS = (8.0, 16.0, 32.0)
+GAINS = (1.05, 1.1, 1.2, 0.0)  # 0: no limit
+SPIKES = (2.0, 4.0)
 
 
 def measure_corrections(methods: list[str], folder: str, spps: list[int], sigma: float) -> dict:
@@ -52,7 +66,7 @@ def measure_corrections(methods: list[str], folder: str, spps: list[int], sigma:
     from jaxdenoise import color, metrics
     from jaxdenoise.api import resolve
     from jaxdenoise.data import discover, renders_by_spp
-    from jaxdenoise.filters import clamp_outliers
+    from jaxdenoise.filters import clamp_outliers, match_level
     from jaxdenoise.inference import inference_fn, prepare
     from jaxdenoise.io import read_buffers, read_image
 
@@ -72,7 +86,7 @@ def measure_corrections(methods: list[str], folder: str, spps: list[int], sigma:
                 outs = {"none": y}
                 for t, k in TARGETS.items():
                     est = ref if k is None else np.asarray(clamp_outliers(c * scale, k, color.EXPOSURE_LEVEL) / scale)
-                    outs[t] = correct(y, est, sigma, eps)
+                    outs[t] = np.asarray(match_level(y, est, sigma, eps))
                 for t, out in outs.items():
                     rows.setdefault(t, {}).setdefault(str(spp), []).append(
                         {"relmse": float(metrics.relmse(out, ref)), "ssim": float(metrics.ssim(out, ref)),
@@ -83,7 +97,92 @@ def measure_corrections(methods: list[str], folder: str, spps: list[int], sigma:
     return res
 
 
+def score_settings(init: str, settings: dict[str, dict], folders: list[str]) -> dict:
+    """For each label -> `demc.Config` overrides: the weights in ``init`` with them, measured by
+    `demc_levels.measure` on ``folders`` at every rate they hold: mean RelMSE per (folder, rate), their
+    geometric mean, the level (median over frames, R/G/B) and the emitters (median over frames that
+    show one)."""
+    import tempfile
+
+    from demc_levels import measure
+    from jaxdenoise import checkpoint
+    from jaxdenoise.api import resolve
+
+    base, params = resolve("demc", init)
+    with tempfile.TemporaryDirectory() as tmp:
+        labels = [f"{k}={checkpoint.save(Path(tmp) / k, params, base.with_config(**v).config, {'method': 'demc'})}"
+                  for k, v in settings.items()]
+        lv = measure(labels, folders, [1, 4, 16, 64])
+    out = {}
+    for label, over in settings.items():
+        rec = lv["methods"][label]
+        keys = [(f, s) for f in folders for s in sorted(rec["scores"][f], key=int)]
+        rel = {f"{f} {s}": float(np.mean([x[0] for x in rec["scores"][f][s]])) for f, s in keys}
+        emit = {f"{f} {s}": np.median([e for e in rec["emitters"][f][s] if e is not None], 0).tolist()
+                for f, s in keys if any(e is not None for e in rec["emitters"][f][s])}
+        out[label] = {"config": over, "relmse": rel, "geomean": float(np.exp(np.mean(np.log(list(rel.values()))))),
+                      "level": {f"{f} {s}": np.median(rec["levels"][f][s], 0).tolist() for f, s in keys},
+                      "emitters": emit}
+        print(label, round(out[label]["geomean"], 5), flush=True)
+    return out
+
+
+def choose(init: str, folders: list[str], tolerance: float) -> dict:
+    """The ``--choose`` run (module docstring): the window, then the level setting."""
+    res = {"init": init, "data": folders, "level_tolerance": tolerance}
+    res["windows"] = score_settings(init, {f"w{w}": {"keep_exact": True, "exact_window": w, "match_level": 0.0}
+                                           for w in WINDOWS}, folders)
+    window = min(WINDOWS, key=lambda w: res["windows"][f"w{w}"]["geomean"])
+    grid = {"off": {"keep_exact": True, "exact_window": window, "match_level": 0.0}}
+    for sigma in SIGMAS:
+        for gain in GAINS:
+            for spike in SPIKES:
+                grid[f"s{sigma:g} g{gain:g} k{spike:g}"] = {"keep_exact": True, "exact_window": window,
+                                                           "match_level": sigma, "match_max_gain": gain,
+                                                           "match_spike": spike}
+    res["levels"] = score_settings(init, grid, folders)
+    for v in res["levels"].values():
+        v["level_ok"] = all(abs(x - 1) <= tolerance for lv in v["level"].values() for x in lv)
+    ok = [k for k, v in res["levels"].items() if v["level_ok"]]
+    res["chosen"] = {"exact_window": window,
+                     "level": min(ok, key=lambda k: res["levels"][k]["geomean"]) if ok else "off"}
+    return res
+
+
+def choice_page(res: dict) -> str:
+    first = next(iter(res["windows"].values()))["relmse"]
+    cols = sorted(first, key=lambda c: (res["data"].index(c.rsplit(" ", 1)[0]), int(c.rsplit(" ", 1)[1])))
+    off = res["levels"]["off"]["geomean"]
+    lines = ["# `demc`'s inference settings: the exact-pixel window and the level match", "",
+             f"Weights `{res['init']}`, validation folders {', '.join(f'`{f}`' for f in res['data'])}, every "
+             "rate they hold (experiments/level_correction.py `--choose`; docs/methods/demc.md \"Colour level at "
+             "inference\"; `g0`: no gain limit). RelMSE: mean over frames; level: per channel, the median over "
+             "frames of the median 15x15 box ratio to the reference on surface pixels (experiments/demc_levels.py); "
+             "emitters: the output over the reference on the interior of area lights, median over the frames that "
+             "show one.", "",
+             "## 1. The exact-pixel window (`exact_window`, 1-spp frames; match off)", "",
+             "| setting | " + " | ".join(f"RelMSE {c}" for c in cols) + " | emitters (median) | geomean |",
+             "|---|" + "---:|" * (len(cols) + 2)]
+    for k, v in res["windows"].items():
+        em = "; ".join(f"{c}: " + "/".join(num(x, ".3f") for x in e) for c, e in v["emitters"].items()) or "-"
+        lines.append(f"| {k} | " + " | ".join(num(v["relmse"][c], ".4f") for c in cols)
+                     + f" | {em} | {num(v['geomean'], '.5f')} |")
+    lines += ["", f"Chosen: `exact_window = {res['chosen']['exact_window']}` (lowest geometric mean).", "",
+              "## 2. The level match (`match_level` sigma px, `match_max_gain`, `match_spike`)", "",
+              "| setting | " + " | ".join(f"level {c}" for c in cols) + f" | within {num(res['level_tolerance'], 'g')} "
+              "| geomean | x off |", "|---|" + "---|" * len(cols) + "---|---:|---:|"]
+    for k, v in sorted(res["levels"].items(), key=lambda kv: kv[1]["geomean"]):
+        lines.append(f"| {k} | " + " | ".join("/".join(num(x, ".3f") for x in v["level"][c]) for c in cols)
+                     + f" | {'yes' if v['level_ok'] else 'no'} | {num(v['geomean'], '.5f')} | "
+                     f"{num(v['geomean'] / off, '.3f')} |")
+    lines += ["", f"Chosen: `{res['chosen']['level']}` (the lowest geometric mean among the settings within the "
+              "tolerance at every folder and rate).", "", "Command: `" + res["command"] + "`", ""]
+    return "\n".join(lines)
+
+
 def page(res: dict) -> str:
+    if "windows" in res:  # a --choose run's JSON
+        return choice_page(res)
     lines = ["# A low-frequency level correction: colour level against RelMSE", "",
              f"Each method's output on `{res['data']}` (single frames), uncorrected (`none`) and multiplied by "
              f"G(t) / G(output) per channel (Gaussian sigma {num(res['sigma'], 'g')} px) with the target t: "
@@ -114,7 +213,17 @@ def main(argv=None) -> None:
     ap.add_argument("--spps", default="1,4,16,64")
     ap.add_argument("--sigma", type=float, default=16.0)
     ap.add_argument("--out", required=True)
+    ap.add_argument("--choose", metavar="WEIGHTS", help="choose demc's inference settings for this weights folder "
+                    "on the --data folders (comma-separated) instead (module docstring)")
+    ap.add_argument("--level-tolerance", type=float, default=0.03, help="--choose: the level's allowed distance "
+                    "from 1 (issue 33: 3 %%)")
     args = ap.parse_args(argv)
+    if args.choose:
+        res = choose(args.choose, args.data.split(","), args.level_tolerance)
+        res["command"] = "python experiments/level_correction.py " + " ".join(sys.argv[1:] if argv is None else argv)
+        all_measured(res, "choice.json")
+        print(write_study(Path(args.out), "choice.json", "choice.md", res, choice_page))
+        return
     res = measure_corrections(args.methods.split(","), args.data, [int(s) for s in args.spps.split(",")], args.sigma)
     res["command"] = "python experiments/level_correction.py " + " ".join(argv if argv is not None else sys.argv[1:])
     all_measured(res, "level_correction.json")

@@ -12,6 +12,7 @@ import pytest
 
 from jaxdenoise import color, nn
 from jaxdenoise.buffers import Buffers
+from jaxdenoise.errors import JaxdenoiseError
 from jaxdenoise.methods import demc, get
 from jaxdenoise.pipeline import augment
 
@@ -64,6 +65,51 @@ def test_keep_exact_pixels_keeps_the_input_where_the_samples_agreed():
     got = np.asarray(demc.keep_exact_pixels(jnp.asarray(np.stack([out, out])), batch))
     np.testing.assert_array_equal(got[0], out)
     np.testing.assert_array_equal(got[1], want)
+
+
+def test_keep_exact_pixels_window_rule_where_no_variance_tells():
+    """``window``: in a frame without a variance to read (1 spp, or none written) a lit pixel whose
+    window x window square holds its colour bit for bit keeps its input (the inner pixels of a uniform
+    light); a frame of >= 2 spp with ``color_var`` keeps the variance rule alone; odd windows only."""
+    rng = np.random.default_rng(0)
+    c = rng.exponential(0.3, (9, 10, 3)).astype(np.float32)
+    c[2:7, 3:8] = 12.0  # a 5x5 light: every sample on it returns its radiance
+    out = np.full((9, 10, 3), 9.0, np.float32)
+    light = np.zeros((9, 10), bool)
+    light[2:7, 3:8] = True
+    for window, inner in ((3, (slice(3, 6), slice(4, 7))), (5, (4, 5))):
+        got = np.asarray(demc.keep_exact_pixels(jnp.asarray(out), Buffers(color=c, spp=1), window))
+        want = out.copy()
+        want[inner] = 12.0
+        np.testing.assert_array_equal(got, want)
+    no_var = np.asarray(demc.keep_exact_pixels(jnp.asarray(out), Buffers(color=c, spp=4), 3))
+    assert np.sum(no_var[..., 0] == 12.0) == 9
+    v = np.full_like(c, 0.01)
+    with_var = np.asarray(demc.keep_exact_pixels(jnp.asarray(out), Buffers(color=c, color_var=v, spp=4), 3))
+    np.testing.assert_array_equal(with_var, out)  # the variance says every pixel is noisy
+    np.testing.assert_array_equal(demc.keep_exact_pixels(jnp.asarray(out), Buffers(color=c, spp=1)), out)
+    with pytest.raises(JaxdenoiseError, match="exact_window"):
+        demc.widths_of(demc.Config(exact_window=4))
+
+
+def test_match_input_level_puts_the_output_at_the_input_level():
+    """``match_level``: an output 10 % dark in red comes back within 2 % of the noisy input's level
+    (the reference's on average), limited by ``match_max_gain``; f(k x) = k f(x); bad settings named."""
+    rng = np.random.default_rng(1)
+    truth = np.full((64, 64, 3), 0.3, np.float32)
+    fr = Buffers(color=(truth * rng.gamma(4.0, 0.25, truth.shape)).astype(np.float32), spp=1)
+    dark = truth * np.float32([0.9, 1.0, 1.0])
+    cfg = demc.Config(match_level=16.0)
+    got = np.asarray(demc.match_input_level(jnp.asarray(dark), fr, cfg))
+    np.testing.assert_allclose(got[16:-16, 16:-16].mean((0, 1)) / 0.3, 1.0, atol=0.02)
+    capped = np.asarray(demc.match_input_level(jnp.asarray(dark), fr, dataclasses.replace(cfg, match_max_gain=1.05)))
+    assert float(np.max(capped[..., 0] / dark[..., 0])) <= 1.05 + 1e-6
+    k = np.float32(8.0)
+    scaled = np.asarray(demc.match_input_level(jnp.asarray(k * dark), dataclasses.replace(fr, color=k * fr.color), cfg))
+    np.testing.assert_allclose(scaled, k * got, rtol=1e-5)
+    for bad in ({"match_level": -1.0}, {"match_spike": 0.0}, {"match_max_gain": 0.5}):
+        with pytest.raises(JaxdenoiseError, match="match_"):
+            demc.widths_of(demc.Config(**bad))
 
 
 # 1x1 and 7x5 under `slow` (19 s and 29 s of compilation, 26th session): the stability suite runs

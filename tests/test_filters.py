@@ -9,7 +9,7 @@ import pytest
 from jax.test_util import check_grads as _check_grads
 
 from jaxdenoise.filters import (DELTA, ZETA, FilterError, bilateral, clamp_outliers, cross_bilateral, cross_nlm,
-                                drop_constant_features, gaussian, prefilter_features, remove_spikes,
+                                drop_constant_features, gaussian, match_level, prefilter_features, remove_spikes,
                                 spatiotemporal_cross_bilateral)
 
 H, W = 8, 8
@@ -300,6 +300,38 @@ def test_clamp_outliers_cuts_isolated_spikes_only():
     bad_pixel[1, 1, 0] = np.nan
     with pytest.raises(FilterError, match="argument 'color' has 1 NaN/Inf"):
         clamp_outliers(bad_pixel, 4.0, 0.2)
+
+
+def test_match_level_puts_the_low_pass_level_at_the_target_and_keeps_the_detail():
+    """A textured image 20 % dark (red) and 10 % bright (blue) against a noisy target that is right on
+    average comes back at the target's level, its detail (the ratio between neighbouring pixels) kept;
+    degree 1 in (image, target, eps); frames of a batch matched one by one; bad arguments named."""
+    rng = np.random.default_rng(3)
+    truth = (0.5 + 0.4 * np.sin(np.arange(48)[:, None, None] / 3.0) * np.ones((48, 40, 3))).astype(np.float32)
+    image = truth * np.float32([0.8, 1.0, 1.1])
+    target = (truth * rng.gamma(16.0, 1 / 16, truth.shape)).astype(np.float32)  # noisy, right on average
+    out = np.asarray(match_level(image, target, 8.0, 1e-3))
+    level = out[8:-8, 8:-8].mean((0, 1)) / truth[8:-8, 8:-8].mean((0, 1))
+    np.testing.assert_allclose(level, 1.0, atol=0.03)
+    before = image[8:-8, 8:-8].mean((0, 1)) / truth[8:-8, 8:-8].mean((0, 1))
+    assert abs(before[0] - 1) > 0.19 and abs(before[2] - 1) > 0.09
+    gain = out / image
+    assert float(np.max(np.abs(np.diff(gain, axis=0)))) < 0.05  # a smooth gain: detail kept
+    np.testing.assert_allclose(np.asarray(match_level(4 * image, 4 * target, 8.0, 4e-3)), 4 * out, rtol=1e-5)
+    batch = np.stack([image, image[::-1]])[None]
+    np.testing.assert_allclose(np.asarray(match_level(batch, np.stack([target, target[::-1]])[None], 8.0, 1e-3))[0, 0],
+                               out, rtol=1e-6)
+    dark = np.asarray(match_level(image, np.zeros_like(image), 8.0, 1e-3))  # a black target: gain eps / (G + eps)
+    assert np.all(np.isfinite(dark)) and float(dark.max()) < 0.02 * float(image.max())
+    for bad, match in (((image, target[:-1], 8.0, 1e-3), "'target'"), ((image[0], target[0], 8.0, 1e-3), "'image'"),
+                       ((image, target, -1.0, 1e-3), "'sigma'"), ((image, target, 8.0, 0.0), "'eps'"),
+                       ((image, target, float("nan"), 1e-3), "'sigma'")):
+        with pytest.raises(FilterError, match=match):
+            match_level(*bad)
+    bad_pixel = target.copy()
+    bad_pixel[1, 1, 0] = np.inf
+    with pytest.raises(FilterError, match="'target'"):
+        match_level(image, bad_pixel, 8.0, 1e-3)
 
 
 # ----------------------------------------------------------------------------------------------

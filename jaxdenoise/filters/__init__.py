@@ -9,6 +9,7 @@ from ._common import FilterError
 from .bilateral import (DELTA, ZETA, bilateral, cross_bilateral, drop_constant_features,
                         spatiotemporal_cross_bilateral)
 from .gaussian import gaussian, gaussian_kernel_1d
+from .level import match_level
 from .nlm import cross_nlm, prefilter_features
 from .spikes import clamp_outliers, remove_spikes
 
@@ -23,6 +24,7 @@ __all__ = [
     "drop_constant_features",
     "gaussian",
     "gaussian_kernel_1d",
+    "match_level",
     "prefilter_features",
     "remove_spikes",
     "spatiotemporal_cross_bilateral",

@@ -55,11 +55,13 @@ from .. import color as color_ops
 from ..color import gamma
 from ..nn.state import call
 from ..errors import JaxdenoiseError
+from ..filters import clamp_outliers, match_level
 from ..pipeline import carried_stat, carried_stats
 
-__all__ = ["Config", "needs", "required", "keep_exact_pixels", "init", "init_from_data", "apply", "forward", "loss",
-           "relative_loss", "make_dataset", "batch", "inputs", "frame_stats", "position_moments", "exposure_scale",
-           "num_params", "widths_of", "FEATURES", "TRAIN", "FROZEN", "WEIGHTS"]
+__all__ = ["Config", "needs", "required", "keep_exact_pixels", "match_input_level", "MATCH_EPS", "init",
+           "init_from_data", "apply", "forward", "loss", "relative_loss", "make_dataset", "batch", "inputs",
+           "frame_stats", "position_moments", "exposure_scale", "num_params", "widths_of", "FEATURES", "TRAIN",
+           "FROZEN", "WEIGHTS"]
 # Pixels of context a tile needs on each side (`jaxdenoise.tiling`), measured on a real frame
 # (docs/results/tiling/): with the 0.8.1 weights max |tiled - whole| / (|whole| + 0.01) of 1.3e-3 and
 # RelMSE -0.00 % at 128 px, 1.4e-2 and -0.10 % at 96, 7.8e-2 and -0.82 % at 64 (the 0.8.0 weights:
@@ -122,7 +124,21 @@ class Config:
     # `keep_exact`, a pixel of a frame of >= 2 spp whose colour variance is 0 in every channel and whose
     # colour is not black keeps its input (a directly seen emitter, a constant background): its
     # estimate has no noise to remove. Reads `color_var` where the frame has it; inference only.
+    # A frame with no variance to read (1 spp, or none written) has its pixels kept instead where the
+    # whole `exact_window` x `exact_window` square around them has bit-for-bit the same lit colour
+    # (0: not at all): independent samples of a noisy estimate never agree so, a directly seen
+    # uniform emitter's interior or a constant background does.
     keep_exact: bool = dataclasses.field(default=False, metadata={"fine_tune": True})
+    exact_window: int = dataclasses.field(default=0, metadata={"fine_tune": True})
+    # The colour level at inference (ours, issue 33; docs/methods/demc.md "Colour level at inference"):
+    # with `match_level` > 0 the output's level, averaged by a Gaussian of that many pixels, is put at
+    # the noisy input's (`jaxdenoise.filters.match_level`; the input with its isolated spikes cut at
+    # `match_spike` times their neighbours, `jaxdenoise.filters.clamp_outliers`, in the exposure-scaled
+    # units), the gain limited to [1 / `match_max_gain`, `match_max_gain`] (0: no limit); 0: the
+    # network's own level. Inference only.
+    match_level: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})
+    match_spike: float = dataclasses.field(default=2.0, metadata={"fine_tune": True})
+    match_max_gain: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})  # 0: no limit
     train_crop: int = 96
     train_batch: int = 32
 
@@ -161,6 +177,14 @@ def _check(config: Config) -> None:
         raise JaxdenoiseError(f"demc: config.exposure is {config.exposure!r}; expected one of {EXPOSURES}")
     if not config.gamma > 0:
         raise JaxdenoiseError(f"demc: config.gamma must be > 0, got {config.gamma}")
+    if not (config.match_level >= 0 and config.match_spike > 0 and (config.match_max_gain >= 1 or
+                                                                     config.match_max_gain == 0)):
+        raise JaxdenoiseError(f"demc: config.match_level must be >= 0, match_spike > 0 and match_max_gain >= 1 "
+                              f"(0: no limit), got {config.match_level}, {config.match_spike}, "
+                              f"{config.match_max_gain}")
+    if config.exact_window < 0 or config.exact_window % 2 == 0 and config.exact_window:
+        raise JaxdenoiseError(f"demc: config.exact_window must be 0 or an odd number of pixels, got "
+                              f"{config.exact_window}")
 
 
 def needs(config: Config) -> frozenset[str]:
@@ -409,26 +433,61 @@ def _run(params, buffers, config, train=False):
 
 def apply(params: dict, buffers: Buffers, config: Config) -> jax.Array:
     """Denoise one frame or a batch (leading axes): HDR ``(..., H, W, 3)`` (inference mode: the
-    BatchNorm running statistics); with ``keep_exact``, `keep_exact_pixels`."""
-    out = _run(params, buffers, config)
-    return keep_exact_pixels(out, buffers) if config.keep_exact else out
+    BatchNorm running statistics); with ``keep_exact``, `keep_exact_pixels`; with ``match_level``,
+    `match_input_level` (exact pixels kept before and after, so a network's error on them moves no
+    level around them)."""
+    def keep(y):
+        return keep_exact_pixels(y, buffers, config.exact_window) if config.keep_exact else y
+
+    out = keep(_run(params, buffers, config))
+    return keep(match_input_level(out, buffers, config)) if config.match_level else out
 
 
-def keep_exact_pixels(out: jax.Array, buffers: Any) -> jax.Array:
-    """``out`` with the input's colour where the frame (``spp`` >= 2) says a pixel's samples all agreed:
-    ``color_var`` 0 in every channel and the colour not black (`Config.keep_exact`). Unchanged for a
-    frame without ``color_var`` or ``spp``. By the Buffers contract (``color_var``: the variance of the
-    pixel's samples) such a pixel's estimate is exact; a renderer that writes 0 for an unknown variance
-    would have every lit pixel kept."""
+# `match_input_level`'s eps, in exposure-scaled units: 1 % of the exposure level
+MATCH_EPS = 0.01 * color_ops.EXPOSURE_LEVEL
+
+
+def match_input_level(out: jax.Array, buffers: Any, config: Config) -> jax.Array:
+    """``out`` with its level, low-passed by a Gaussian of ``config.match_level`` pixels, put at the
+    input colour's (`Config.match_level`): `jaxdenoise.filters.match_level` of the output against the
+    input with its isolated spikes cut (`jaxdenoise.filters.clamp_outliers`, factor
+    ``config.match_spike``, floor `jaxdenoise.color.EXPOSURE_LEVEL`), both in the exposure-scaled units
+    of `inputs` (eps `MATCH_EPS`), so ``f(k x) = k f(x)`` still holds. Any leading axes."""
+    color = jnp.asarray(_getter(buffers)("color"), jnp.float32)
+    scale = exposure_scale(buffers, config)  # (..., 1, 1, 1)
+    color = jnp.where(jnp.isfinite(color), jnp.maximum(color, 0.0), 0.0)  # as `inputs` reads it
+    target = clamp_outliers(color * scale, config.match_spike, color_ops.EXPOSURE_LEVEL)
+    gain = config.match_max_gain or float("inf")
+    return match_level(out * scale, target, config.match_level, MATCH_EPS, max_gain=gain) / scale
+
+
+def keep_exact_pixels(out: jax.Array, buffers: Any, window: int = 0) -> jax.Array:
+    """``out`` with the input's colour where the frame says a pixel's estimate is exact
+    (`Config.keep_exact`): in a frame of ``spp`` >= 2 with ``color_var``, a pixel whose variance is 0
+    in every channel (its samples all agreed); in any other frame, with ``window`` > 0, a pixel whose
+    ``window`` x ``window`` square (the frame's border repeated outward) holds bit-for-bit its colour
+    in every pixel (independent samples agreed). Kept pixels are lit (not black). By the Buffers
+    contract (``color_var``: the variance of the pixel's samples) the first rule keeps exact
+    estimates; a renderer that writes 0 for an unknown variance would have every lit pixel kept."""
     get = _getter(buffers, optional=True)
     var, spp = get("color_var"), get("spp")
-    if var is None or spp is None:
-        return out
     c = jnp.asarray(get("color"), out.dtype)
-    exact = (jnp.max(jnp.asarray(var), axis=-1, keepdims=True) == 0) & (jnp.max(c, axis=-1, keepdims=True) > 0)
-    spp = jnp.asarray(spp, jnp.float32)
-    many = jnp.reshape(spp, spp.shape + (1,) * (out.ndim - spp.ndim)) >= 2 if spp.ndim else spp >= 2
-    return jnp.where(exact & many, c, out)
+    lit = jnp.max(c, axis=-1, keepdims=True) > 0
+    many = exact = jnp.asarray(False)  # `many`: the variance rule applies
+    if var is not None and spp is not None:
+        spp = jnp.asarray(spp, jnp.float32)
+        many = jnp.reshape(spp, spp.shape + (1,) * (out.ndim - spp.ndim)) >= 2 if spp.ndim else spp >= 2
+        exact = many & (jnp.max(jnp.asarray(var), axis=-1, keepdims=True) == 0)
+    if window:
+        h, w, r = c.shape[-3], c.shape[-2], window // 2
+        p = jnp.pad(c, [(0, 0)] * (c.ndim - 3) + [(r, r), (r, r), (0, 0)], mode="edge")
+        agree = jnp.ones(lit.shape, bool)
+        for dy in range(window):
+            for dx in range(window):
+                same = p[..., dy:dy + h, dx:dx + w, :] == c
+                agree = agree & jnp.all(same, axis=-1, keepdims=True)
+        exact = exact | (~many & agree)
+    return jnp.where(exact & lit, c, out)
 
 
 def loss(params: dict, batch: dict, config: Config):

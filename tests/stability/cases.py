@@ -470,6 +470,10 @@ FILTERS: dict[str, FilterSpec] = {
     "clamp_outliers": FilterSpec(
         lambda b, p: _filters_mod().clamp_outliers(b.color, p, 0.2),
         frozenset({"color"}), ("factor",), static_param=True, convex=False),
+    # scales each pixel by a smooth gain: not a convex combination of input pixels
+    "match_level": FilterSpec(
+        lambda b, p: _filters_mod().match_level(b.color, b.albedo, p, 1e-3),
+        frozenset({"color", "albedo"}), ("sigma",), static_param=True, convex=False),
 }
 # Public names of jaxdenoise.filters that are not image filters (helpers and the error type).
 FILTER_HELPERS = frozenset({"FilterError", "gaussian_kernel_1d", "drop_constant_features", "DELTA", "ZETA"})

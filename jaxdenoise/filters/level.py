@@ -1,0 +1,51 @@
+"""Level matching: an image given the large-scale level of another (ours, issue 33; docs/methods/demc.md
+"Colour level at inference").
+
+``match_level(image, target, sigma, eps, *, max_gain=inf) -> image``
+
+Each channel of ``image`` times the gain ``(G(target) + eps) / (G(image) + eps)``, limited to
+``[1 / max_gain, max_gain]``, where ``G`` is `gaussian` of ``sigma`` pixels (border renormalised) and
+negative low-pass values count as 0. Where ``target``
+is an unbiased estimate of what ``image`` should be (a Monte Carlo input: noisy, but right on
+average), the product keeps the image's detail and puts its level, averaged over a few ``sigma``, at
+the target's: a denoiser's large-scale darkening or tint is undone without the input's noise, which
+the wide low-pass averages away. ``eps`` (> 0, in the image's units) keeps the gain finite and near 1
+where both low-passes are dark; the gain is at most ``(max G(target) + eps) / eps``. Where the image
+misses something concentrated that the target has (a small light drawn dark), the gain spreads it
+over the low-pass's reach as a halo: ``max_gain`` bounds what that can add.
+
+Homogeneous of degree 1 in ``(image, target, eps)`` together; ``sigma`` 0 gives ``image * (target +
+eps) / (image + eps)``. Shapes: ``(..., H, W, C)`` with any leading axes (frames of a batch are
+matched one by one), ``image`` and ``target`` alike.
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..arrays import is_concrete
+from ._common import FilterError, as_image
+from .gaussian import gaussian
+
+
+def match_level(image, target, sigma: float, eps: float, *, max_gain: float = float("inf")) -> jax.Array:
+    """``image`` times ``(G(target) + eps) / (G(image) + eps)`` per channel, within ``[1 / max_gain,
+    max_gain]`` (module docstring)."""
+    shape = tuple(np.shape(image))
+    if len(shape) < 3:
+        raise FilterError(f"argument 'image' has shape {shape}; expected (..., H, W, C)")
+    if tuple(np.shape(target)) != shape:
+        raise FilterError(f"argument 'target' has shape {tuple(np.shape(target))}; expected the image's {shape}")
+    for name, v, ok, want in (("sigma", sigma, lambda x: 0 <= x < np.inf, "a finite number >= 0"),
+                              ("eps", eps, lambda x: 0 < x < np.inf, "a finite number > 0"),
+                              ("max_gain", max_gain, lambda x: x >= 1, "a number >= 1 (inf: no limit)")):
+        if not is_concrete(v) or np.ndim(v) or not ok(float(v)):
+            raise FilterError(f"argument '{name}' is {v!r}; expected a static {want}")
+    for name, a in (("image", image), ("target", target)):  # sizes, (concrete) NaN/Inf checked by name
+        as_image(jnp.reshape(a, (-1,) + shape[-2:]), name)
+    flat = (-1,) + shape[-3:]
+    xs, ts = jnp.reshape(jnp.asarray(image), flat), jnp.reshape(jnp.asarray(target), flat)
+    low = jax.vmap(lambda a: jnp.maximum(gaussian(a, float(sigma)), 0.0))
+    gain = jnp.clip((low(ts) + float(eps)) / (low(xs) + float(eps)), 1.0 / float(max_gain), float(max_gain))
+    return jnp.reshape(xs * gain.astype(xs.dtype), shape)
