@@ -88,8 +88,15 @@ def test_keep_exact_pixels_window_rule_where_no_variance_tells():
     with_var = np.asarray(demc.keep_exact_pixels(jnp.asarray(out), Buffers(color=c, color_var=v, spp=4), 3))
     np.testing.assert_array_equal(with_var, out)  # the variance says every pixel is noisy
     np.testing.assert_array_equal(demc.keep_exact_pixels(jnp.asarray(out), Buffers(color=c, spp=1)), out)
-    with pytest.raises(JaxdenoiseError, match="exact_window"):
-        demc.widths_of(demc.Config(exact_window=4))
+    for bad in (1, 4, -3):  # 1 keeps every lit pixel, an even square is off-centre
+        with pytest.raises(JaxdenoiseError, match="exact_window"):
+            demc.widths_of(demc.Config(exact_window=bad))
+        with pytest.raises(JaxdenoiseError, match="window"):
+            demc.keep_exact_pixels(jnp.asarray(out), Buffers(color=c, spp=1), bad)
+    inf = c.copy()
+    inf[:3, :3] = np.inf  # a block of infinite pixels agrees with itself but is not kept
+    got = np.asarray(demc.keep_exact_pixels(jnp.asarray(out), Buffers(color=inf, spp=1), 3))
+    assert np.all(got[:3, :3] == 9.0)
 
 
 def test_match_input_level_puts_the_output_at_the_input_level():
@@ -104,10 +111,10 @@ def test_match_input_level_puts_the_output_at_the_input_level():
     np.testing.assert_allclose(got[16:-16, 16:-16].mean((0, 1)) / 0.3, 1.0, atol=0.02)
     capped = np.asarray(demc.match_input_level(jnp.asarray(dark), fr, dataclasses.replace(cfg, match_max_gain=1.05)))
     assert float(np.max(capped[..., 0] / dark[..., 0])) <= 1.05 + 1e-6
-    k = np.float32(8.0)
-    scaled = np.asarray(demc.match_input_level(jnp.asarray(k * dark), dataclasses.replace(fr, color=k * fr.color), cfg))
-    np.testing.assert_allclose(scaled, k * got, rtol=1e-5)
-    for bad in ({"match_level": -1.0}, {"match_spike": 0.0}, {"match_max_gain": 0.5}):
+    for k in (np.float32(8.0), np.float32(3.0), np.float32(1 / 16)):
+        scaled = demc.match_input_level(jnp.asarray(k * dark), dataclasses.replace(fr, color=k * fr.color), cfg)
+        np.testing.assert_allclose(np.asarray(scaled), k * got, rtol=1e-5)
+    for bad in ({"match_level": -1.0}, {"match_spike": 0.0}, {"match_max_gain": 0.5}, {"match_level": np.inf}):
         with pytest.raises(JaxdenoiseError, match="match_"):
             demc.widths_of(demc.Config(**bad))
 

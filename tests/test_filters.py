@@ -321,6 +321,8 @@ def test_match_level_puts_the_low_pass_level_at_the_target_and_keeps_the_detail(
     batch = np.stack([image, image[::-1]])[None]
     np.testing.assert_allclose(np.asarray(match_level(batch, np.stack([target, target[::-1]])[None], 8.0, 1e-3))[0, 0],
                                out, rtol=1e-6)
+    ints = match_level((image * 100).astype(np.int32), (target * 100).astype(np.int32), 8.0, 0.1)
+    assert ints.dtype == np.float32 and float(np.max(np.abs(np.asarray(ints) / 100 - out))) < 0.02 * float(out.max())
     dark = np.asarray(match_level(image, np.zeros_like(image), 8.0, 1e-3))  # a black target: gain eps / (G + eps)
     assert np.all(np.isfinite(dark)) and float(dark.max()) < 0.02 * float(image.max())
     for bad, match in (((image, target[:-1], 8.0, 1e-3), "'target'"), ((image[0], target[0], 8.0, 1e-3), "'image'"),

@@ -3,7 +3,9 @@
 All filters take and return ``(H, W, C)`` float arrays, accept scalar or per-pixel ``(H, W)``
 parameters, are differentiable in every continuous parameter, keep static sizes (``radius``,
 ``patch_radius``) keyword-only, and never materialize an ``H x W x window^2`` weight tensor.
-See each module's docstring for the exact equations and edge handling.
+See each module's docstring for the exact equations and edge handling. Two helpers that act on a
+network's input or output, `clamp_outliers` and `match_level`, take ``(..., H, W, C)`` arrays with any
+leading axes and static scalar parameters instead (no per-pixel maps, no parameter gradients).
 """
 from ._common import FilterError
 from .bilateral import (DELTA, ZETA, bilateral, cross_bilateral, drop_constant_features,

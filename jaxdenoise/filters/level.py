@@ -16,7 +16,10 @@ over the low-pass's reach as a halo: ``max_gain`` bounds what that can add.
 
 Homogeneous of degree 1 in ``(image, target, eps)`` together; ``sigma`` 0 gives ``image * (target +
 eps) / (image + eps)``. Shapes: ``(..., H, W, C)`` with any leading axes (frames of a batch are
-matched one by one), ``image`` and ``target`` alike.
+matched one by one), ``image`` and ``target`` alike. Computed in float32 at least (half precision
+is cast back, an integer image comes back as float32). Unlike the filters' common conventions
+(`jaxdenoise.filters`), ``sigma``, ``eps`` and ``max_gain`` are static scalars, not per-pixel maps,
+and not differentiable.
 """
 from __future__ import annotations
 
@@ -24,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..arrays import is_concrete
+from ..arrays import compute_dtype, is_concrete
 from ._common import FilterError, as_image
 from .gaussian import gaussian
 
@@ -44,8 +47,11 @@ def match_level(image, target, sigma: float, eps: float, *, max_gain: float = fl
             raise FilterError(f"argument '{name}' is {v!r}; expected a static {want}")
     for name, a in (("image", image), ("target", target)):  # sizes, (concrete) NaN/Inf checked by name
         as_image(jnp.reshape(a, (-1,) + shape[-2:]), name)
+    image, target = jnp.asarray(image), jnp.asarray(target)
+    dt = compute_dtype(image, target)
+    out_dtype = image.dtype if jnp.issubdtype(image.dtype, jnp.floating) else jnp.float32
     flat = (-1,) + shape[-3:]
-    xs, ts = jnp.reshape(jnp.asarray(image), flat), jnp.reshape(jnp.asarray(target), flat)
+    xs, ts = jnp.reshape(image, flat).astype(dt), jnp.reshape(target, flat).astype(dt)
     low = jax.vmap(lambda a: jnp.maximum(gaussian(a, float(sigma)), 0.0))
     gain = jnp.clip((low(ts) + float(eps)) / (low(xs) + float(eps)), 1.0 / float(max_gain), float(max_gain))
-    return jnp.reshape(xs * gain.astype(xs.dtype), shape)
+    return jnp.reshape(xs * gain, shape).astype(out_dtype)

@@ -177,14 +177,24 @@ def _check(config: Config) -> None:
         raise JaxdenoiseError(f"demc: config.exposure is {config.exposure!r}; expected one of {EXPOSURES}")
     if not config.gamma > 0:
         raise JaxdenoiseError(f"demc: config.gamma must be > 0, got {config.gamma}")
-    if not (config.match_level >= 0 and config.match_spike > 0 and (config.match_max_gain >= 1 or
-                                                                     config.match_max_gain == 0)):
-        raise JaxdenoiseError(f"demc: config.match_level must be >= 0, match_spike > 0 and match_max_gain >= 1 "
-                              f"(0: no limit), got {config.match_level}, {config.match_spike}, "
-                              f"{config.match_max_gain}")
-    if config.exact_window < 0 or config.exact_window % 2 == 0 and config.exact_window:
-        raise JaxdenoiseError(f"demc: config.exact_window must be 0 or an odd number of pixels, got "
-                              f"{config.exact_window}")
+    finite = all(np.isfinite(v) for v in (config.match_level, config.match_spike, config.match_max_gain))
+    if not (finite and config.match_level >= 0 and config.match_spike > 0
+            and (config.match_max_gain >= 1 or config.match_max_gain == 0)):
+        raise JaxdenoiseError(f"demc: config.match_level must be finite and >= 0, match_spike finite and > 0, "
+                              f"match_max_gain finite and >= 1 (0: no limit), got {config.match_level}, "
+                              f"{config.match_spike}, {config.match_max_gain}")
+    _check_window(config.exact_window, "config.exact_window")
+
+
+def _check_window(window: Any, name: str) -> None:
+    if not (isinstance(window, (int, np.integer)) and (window == 0 or window >= 3 and window % 2)):
+        raise JaxdenoiseError(f"demc: {name} must be 0 (off) or an odd number of pixels >= 3, got {window!r}")
+
+
+def _clean_color(color: Any) -> jax.Array:
+    """The colour as the network reads it: float32, non-finite values and negatives as 0."""
+    color = jnp.asarray(color, jnp.float32)
+    return jnp.where(jnp.isfinite(color), jnp.maximum(color, 0.0), 0.0)
 
 
 def needs(config: Config) -> frozenset[str]:
@@ -396,8 +406,7 @@ def inputs(params: dict, buffers: Any, config: Config) -> tuple[jax.Array, jax.A
     ``stat.position_std``: its whole render's, `frame_stats`), else those of the array itself (at
     inference, the whole frame)."""
     get = _getter(buffers)
-    color = jnp.asarray(get("color"), jnp.float32)
-    color = jnp.where(jnp.isfinite(color), jnp.maximum(color, 0.0), 0.0) * exposure_scale(buffers, config)
+    color = _clean_color(get("color")) * exposure_scale(buffers, config)
     x_color = gamma(color, config.gamma)  # color ** (1 / gamma), with a finite gradient at 0 (Dr.Jit bridge)
     feats = jnp.concatenate([jnp.asarray(get(f), jnp.float32) for f in FEATURES], -1)
     feats = jnp.where(jnp.isfinite(feats), feats, 0.0)
@@ -453,10 +462,9 @@ def match_input_level(out: jax.Array, buffers: Any, config: Config) -> jax.Array
     input with its isolated spikes cut (`jaxdenoise.filters.clamp_outliers`, factor
     ``config.match_spike``, floor `jaxdenoise.color.EXPOSURE_LEVEL`), both in the exposure-scaled units
     of `inputs` (eps `MATCH_EPS`), so ``f(k x) = k f(x)`` still holds. Any leading axes."""
-    color = jnp.asarray(_getter(buffers)("color"), jnp.float32)
     scale = exposure_scale(buffers, config)  # (..., 1, 1, 1)
-    color = jnp.where(jnp.isfinite(color), jnp.maximum(color, 0.0), 0.0)  # as `inputs` reads it
-    target = clamp_outliers(color * scale, config.match_spike, color_ops.EXPOSURE_LEVEL)
+    target = clamp_outliers(_clean_color(_getter(buffers)("color")) * scale, config.match_spike,
+                            color_ops.EXPOSURE_LEVEL)
     gain = config.match_max_gain or float("inf")
     return match_level(out * scale, target, config.match_level, MATCH_EPS, max_gain=gain) / scale
 
@@ -466,13 +474,14 @@ def keep_exact_pixels(out: jax.Array, buffers: Any, window: int = 0) -> jax.Arra
     (`Config.keep_exact`): in a frame of ``spp`` >= 2 with ``color_var``, a pixel whose variance is 0
     in every channel (its samples all agreed); in any other frame, with ``window`` > 0, a pixel whose
     ``window`` x ``window`` square (the frame's border repeated outward) holds bit-for-bit its colour
-    in every pixel (independent samples agreed). Kept pixels are lit (not black). By the Buffers
+    in every pixel (independent samples agreed). Kept pixels are lit (not black) and finite. By the Buffers
     contract (``color_var``: the variance of the pixel's samples) the first rule keeps exact
     estimates; a renderer that writes 0 for an unknown variance would have every lit pixel kept."""
+    _check_window(window, "keep_exact_pixels' window")
     get = _getter(buffers, optional=True)
     var, spp = get("color_var"), get("spp")
     c = jnp.asarray(get("color"), out.dtype)
-    lit = jnp.max(c, axis=-1, keepdims=True) > 0
+    lit = (jnp.max(c, axis=-1, keepdims=True) > 0) & jnp.all(jnp.isfinite(c), axis=-1, keepdims=True)
     many = exact = jnp.asarray(False)  # `many`: the variance rule applies
     if var is not None and spp is not None:
         spp = jnp.asarray(spp, jnp.float32)
@@ -511,8 +520,8 @@ def relative_loss(out: jax.Array, ref: jax.Array, config: Config) -> jax.Array:
 
     value = rel(out, ref, config.loss_scale)
     if config.level_weight:
-        pool = nn.AvgPool(max(1, min(int(config.level_pool), *out.shape[-3:-1])))[1]  # (a crop below 8 px: its size)
-        value = value + config.level_weight * rel(pool({}, out), pool({}, ref), config.level_scale)
+        blocks = [nn.block_means(a, config.level_pool) for a in (out, ref)]
+        value = value + config.level_weight * rel(*blocks, config.level_scale)
     return value
 
 

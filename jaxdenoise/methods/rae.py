@@ -439,8 +439,8 @@ def loss_terms(pred: jax.Array, target: jax.Array, config: Config) -> dict:
     lt = jnp.concatenate([jnp.zeros((1,)), jnp.mean(dt, axis=(0, 2, 3, 4))])
     terms = {"spatial": ls, "hfen": lg, "temporal": lt}
     if config.level_weight:
-        pool = nn.AvgPool(max(1, min(int(config.level_pool), *pred.shape[-3:-1])))[1]  # (a crop below it: its size)
-        terms["level"] = jnp.mean(metrics.relmse_per_image(pool({}, pred), pool({}, target), config.level_eps), axis=0)
+        blocks = [nn.block_means(a, config.level_pool) for a in (pred, target)]
+        terms["level"] = jnp.mean(metrics.relmse_per_image(*blocks, config.level_eps), axis=0)
     return terms
 
 

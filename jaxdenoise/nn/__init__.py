@@ -13,7 +13,7 @@ Layers here: `Dense` (Kalantari 2015 Eq. 7: ``a = f(W a_prev + w0)``), the activ
 `Softplus` (Kalantari 2015 Sec. 4.1), `Relu`, `LeakyRelu` (Chaitanya 2017: slope 0.1; Guo 2019:
 0.01), `Identity`, and the combinator `serial`. One module per kind beside it, re-exported here:
 `jaxdenoise.nn.conv` (`Conv`, `ConvTranspose`, their initializers, `pad_to_multiple` / `crop_to`)
-`jaxdenoise.nn.pool` (`MaxPool`, `AvgPool`, `Upsample`) and `jaxdenoise.nn.combinators` (`fanout`,
+`jaxdenoise.nn.pool` (`MaxPool`, `AvgPool`, `block_means`, `Upsample`) and `jaxdenoise.nn.combinators` (`fanout`,
 `parallel`, `Concat`, `residual`, `UNet`, `RecurrentBlock`), `jaxdenoise.nn.norm` (`BatchNorm`) with
 the stateful-layer convention of `jaxdenoise.nn.state` (explicit ``train`` mode, running statistics
 returned as updates).
@@ -27,8 +27,8 @@ import jax.numpy as jnp
 
 __all__ = ["Dense", "Sigmoid", "Softplus", "Relu", "LeakyRelu", "Identity", "Elementwise", "serial", "Layer",
            "uniform_init", "glorot_uniform_init", "Conv", "ConvTranspose", "he_normal_init", "bilinear_init",
-           "identity_init", "pad_to_multiple", "crop_to", "MaxPool", "AvgPool", "Upsample", "fanout", "parallel",
-           "Concat", "residual", "UNet", "RecurrentBlock", "BatchNorm", "merge_updates"]
+           "identity_init", "pad_to_multiple", "crop_to", "MaxPool", "AvgPool", "block_means", "Upsample", "fanout",
+           "parallel", "Concat", "residual", "UNet", "RecurrentBlock", "BatchNorm", "merge_updates"]
 
 Layer = tuple[Callable[..., Any], Callable[..., Any]]
 Initializer = Callable[[jax.Array, tuple[int, ...]], jax.Array]
@@ -178,5 +178,5 @@ def serial(*layers: Layer) -> Layer:
 from .state import call, is_stateful, mark, merge_updates  # noqa: E402
 from .norm import BatchNorm  # noqa: E402
 from .conv import Conv, ConvTranspose, bilinear_init, crop_to, he_normal_init, identity_init, pad_to_multiple  # noqa: E402
-from .pool import AvgPool, MaxPool, Upsample  # noqa: E402
+from .pool import AvgPool, MaxPool, Upsample, block_means  # noqa: E402
 from .combinators import Concat, RecurrentBlock, UNet, fanout, parallel, residual  # noqa: E402

@@ -18,7 +18,7 @@ from typing import Sequence
 import jax
 import jax.numpy as jnp
 
-__all__ = ["MaxPool", "AvgPool", "Upsample"]
+__all__ = ["MaxPool", "AvgPool", "block_means", "Upsample"]
 
 
 def _factor(k: int, layer: str) -> int:
@@ -64,6 +64,13 @@ def MaxPool(k: int = 2):
 def AvgPool(k: int = 2):
     """Mean over non-overlapping ``k x k`` windows (module docstring)."""
     return _pool(jnp.mean, k, "AvgPool")
+
+
+def block_means(x: jax.Array, k: int) -> jax.Array:
+    """Means of the non-overlapping ``k x k`` blocks of ``(..., H, W, C)`` ``x`` (`AvgPool`), ``k``
+    capped at the smaller side (a crop below ``k`` pixels: one block of its size): the level terms
+    of DEMC's and RAE's losses."""
+    return AvgPool(max(1, min(int(k), *x.shape[-3:-1])))[1]({}, x)
 
 
 def Upsample(k: int = 2, method: str = "nearest"):
