@@ -204,6 +204,13 @@ SRGB = Transfer("srgb", srgb, inv_srgb)
 TRANSFERS: dict[str, Transfer] = {t.name: t for t in (IDENTITY, GAMMA, LOG, MU_LAW, SRGB)}
 
 
+def radiance(c: Any) -> jnp.ndarray:
+    """``c`` as float32 radiance: non-finite and negative values as 0 (how the networks and the
+    exposure statistic read a colour buffer)."""
+    c = jnp.asarray(c, jnp.float32)
+    return jnp.where(jnp.isfinite(c), jnp.maximum(c, 0.0), 0.0)
+
+
 def luminance(c: Any) -> jnp.ndarray:
     """Rec. 709 luminance of ``(..., 3)`` linear RGB: ``(...)``."""
     return 0.2126 * c[..., 0] + 0.7152 * c[..., 1] + 0.0722 * c[..., 2]
@@ -216,8 +223,7 @@ def color_mean(color: Any) -> jnp.ndarray:
     pipeline carries it with every crop (a per-frame statistic) and multiplies it by the crop's colour
     modulation (`jaxdenoise.pipeline.RADIANCE_STATS`), so a modulated crop is normalised by its
     modulated frame's level."""
-    c = jnp.asarray(color, jnp.float32)
-    c = jnp.where(jnp.isfinite(c), jnp.maximum(c, 0.0), 0.0)
+    c = radiance(color)
     lum = luminance(c)
     flat = lum.reshape(lum.shape[:-2] + (-1,))
     clip = jnp.quantile(flat, EXPOSURE_CLIP_QUANTILE, axis=-1, method="lower")[..., None, None]
@@ -258,6 +264,6 @@ def transfer(name: str) -> Transfer:
 __all__ = [
     "ALBEDO_EPS_DEFAULT", "GAMMA_DEFAULT", "MU_DEFAULT", "Transfer", "TRANSFERS", "IDENTITY", "GAMMA",
     "LOG", "MU_LAW", "SRGB", "transfer", "srgb", "inv_srgb", "gamma", "inv_gamma", "log_transform", "inv_log_transform", "mu_law",
-    "inv_mu_law", "tonemap", "demodulate", "remodulate", "luminance", "color_mean", "exposure_level",
+    "inv_mu_law", "tonemap", "demodulate", "remodulate", "radiance", "luminance", "color_mean", "exposure_level",
     "exposure_scale", "EXPOSURE_LEVEL", "EXPOSURE_CLIP_QUANTILE",
 ]

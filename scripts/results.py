@@ -347,6 +347,24 @@ def _rae_outlier_clamp(results: Path) -> str:
             f"validation `{d['val_data']}`. Command: `{d['command']}`.")
 
 
+@renderer("rae-level-match")
+def _rae_level_match(results: Path) -> str:
+    """The level match at inference measured on the validation fly-throughs (experiments/rae_rates.py match)."""
+    d = load(results, "rae_rates/level_match.json")
+    spps = sorted(d["settings"]["off"]["per_spp"], key=int)
+    rows = [[("**" + k + "**" if k == d["chosen"] else k), num(r["relmse_geomean"], ".4g")]
+            + [num(r["per_spp"][s], ".4g") for s in spps]
+            + ["/".join(num(v, ".3f") for v in r["level"][s]) for s in spps] + [num(r["level_distance"], ".3f")]
+            for k, r in sorted(d["settings"].items(), key=lambda kv: (kv[1]["config"]["match_level"],
+                                                                      kv[1]["config"].get("match_max_gain", 0)))]
+    return (table(["setting (sigma px, gain limit)", "geometric mean", *(f"RelMSE {s} spp" for s in spps),
+                   *(f"level {s} spp (R/G/B)" for s in spps), "largest distance from 1"], rows)
+            + f"\n\nChosen (bold): among the settings whose geometric mean is at most {d['relmse_tolerance']:g}x "
+            f"off's and whose RelMSE at every rate is at most {d['rate_tolerance']:g}x off's there, the one with "
+            f"the smallest largest level distance from 1; off unless that beats off's. Weights `{d['init']}`, "
+            f"validation `{d['val_data']}`. Command: `{d['command']}`.")
+
+
 @renderer("rae-input-arms")
 def _rae_input_arms(results: Path) -> str:
     """Issue 34's input transforms at an equal budget: the validation curve of each arm."""

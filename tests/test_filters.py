@@ -9,8 +9,8 @@ import pytest
 from jax.test_util import check_grads as _check_grads
 
 from jaxdenoise.filters import (DELTA, ZETA, FilterError, bilateral, clamp_outliers, cross_bilateral, cross_nlm,
-                                drop_constant_features, gaussian, match_level, prefilter_features, remove_spikes,
-                                spatiotemporal_cross_bilateral)
+                                drop_constant_features, gaussian, match_level, match_to_input, prefilter_features,
+                                remove_spikes, spatiotemporal_cross_bilateral)
 
 H, W = 8, 8
 
@@ -323,6 +323,14 @@ def test_match_level_puts_the_low_pass_level_at_the_target_and_keeps_the_detail(
                                out, rtol=1e-6)
     ints = match_level((image * 100).astype(np.int32), (target * 100).astype(np.int32), 8.0, 0.1)
     assert ints.dtype == np.float32 and float(np.max(np.abs(np.asarray(ints) / 100 - out))) < 0.02 * float(out.max())
+    spiky = target.copy()
+    spiky[20, 20] = 1e4  # an isolated firefly: cut before it counts as level the image lacks
+    np.testing.assert_allclose(np.asarray(match_to_input(image, spiky, 8.0, spike=2.0, floor=0.1, max_gain=1.5)),
+                               np.asarray(match_level(image, clamp_outliers(spiky, 2.0, 0.1), 8.0, 1e-3, max_gain=1.5)))
+    assert float(np.max(np.asarray(match_to_input(image, spiky, 8.0, spike=2.0, floor=0.1)))) < 2.0
+    for kw, match in (({"spike": 0.0, "floor": 0.1}, "'spike'"), ({"spike": 2.0, "floor": np.nan}, "'floor'")):
+        with pytest.raises(FilterError, match=match):
+            match_to_input(image, spiky, 8.0, **kw)
     dark = np.asarray(match_level(image, np.zeros_like(image), 8.0, 1e-3))  # a black target: gain eps / (G + eps)
     assert np.all(np.isfinite(dark)) and float(dark.max()) < 0.02 * float(image.max())
     for bad, match in (((image, target[:-1], 8.0, 1e-3), "'target'"), ((image[0], target[0], 8.0, 1e-3), "'image'"),

@@ -299,6 +299,30 @@ def test_outlier_clamp_in_the_input():
     assert get("rae").config.outlier_clamp == 8.0 and get("rae-paper").config.outlier_clamp == 0.0
 
 
+def test_level_match_setting():
+    """``match_level``: the output's low-pass level is moved toward the input's within the gain limit
+    (`jaxdenoise.filters.match_to_input`), the state is the network's, f(k x) = k f(x) holds; it needs
+    exposure "frame"; off for `rae` and `rae-paper`."""
+    cfg = rae.Config(widths=(4, 4, 6, 6, 8), bottleneck=8, exposure="frame")
+    on = dataclasses.replace(cfg, match_level=4.0, match_max_gain=1.2)
+    p = rae.init(jax.random.PRNGKey(1), cfg)
+    fr = _frame(16, 12, seed=3)
+    s0 = rae.init_state(fr, cfg)
+    state_off, off = rae.step(p, s0, fr, cfg)
+    state_on, out = rae.step(p, s0, fr, on)
+    for a, b in zip(state_off, state_on):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    gain = np.asarray(out) / np.maximum(np.asarray(off), 1e-12)
+    lit = np.asarray(off) > 1e-6
+    assert np.all(gain[lit] <= 1.2 + 1e-5) and np.all(gain[lit] >= 1 / 1.2 - 1e-5) and not np.allclose(out, off)
+    for k in (1 / 16, 3.0):
+        np.testing.assert_allclose(np.asarray(rae.apply(p, fr.replace(color=fr.color * np.float32(k)), on)),
+                                   k * np.asarray(out), rtol=2e-4, atol=1e-6 * k)
+    with pytest.raises(ValueError, match="match_level"):
+        rae.num_params(dataclasses.replace(TINY, match_level=8.0))  # TINY has exposure "none"
+    assert get("rae").config.match_level == 0.0 and get("rae-paper").config.match_level == 0.0
+
+
 def test_rate_channel_and_linear_input():
     """``rate_input``: one more channel, log2(spp) / RATE_SCALE, per pixel from a sample-count map;
     a frame without ``spp`` is refused. ``input_transform = "linear"``: the demodulated colour itself."""

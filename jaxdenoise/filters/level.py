@@ -2,6 +2,7 @@
 "Colour level at inference").
 
 ``match_level(image, target, sigma, eps, *, max_gain=inf) -> image``
+``match_to_input(output, color, sigma, *, spike, floor, max_gain=inf) -> image``
 
 Each channel of ``image`` times the gain ``(G(target) + eps) / (G(image) + eps)``, limited to
 ``[1 / max_gain, max_gain]``, where ``G`` is `gaussian` of ``sigma`` pixels (border renormalised) and
@@ -13,6 +14,11 @@ the wide low-pass averages away. ``eps`` (> 0, in the image's units) keeps the g
 where both low-passes are dark; the gain is at most ``(max G(target) + eps) / eps``. Where the image
 misses something concentrated that the target has (a small light drawn dark), the gain spreads it
 over the low-pass's reach as a halo: ``max_gain`` bounds what that can add.
+
+`match_to_input` is how a denoiser uses it (`demc`, `rae`): ``target`` is its noisy input ``color``
+with the isolated spikes cut (`clamp_outliers` with ``spike`` and ``floor``: a firefly the network
+rightly removed would otherwise count as level it lacks), ``eps`` 1 % of ``floor`` (the level the
+caller's exposure scaling brings a frame to).
 
 Homogeneous of degree 1 in ``(image, target, eps)`` together; ``sigma`` 0 gives ``image * (target +
 eps) / (image + eps)``. Shapes: ``(..., H, W, C)`` with any leading axes (frames of a batch are
@@ -30,6 +36,7 @@ import numpy as np
 from ..arrays import compute_dtype, is_concrete
 from ._common import FilterError, as_image
 from .gaussian import gaussian
+from .spikes import clamp_outliers
 
 
 def match_level(image, target, sigma: float, eps: float, *, max_gain: float = float("inf")) -> jax.Array:
@@ -55,3 +62,13 @@ def match_level(image, target, sigma: float, eps: float, *, max_gain: float = fl
     low = jax.vmap(lambda a: jnp.maximum(gaussian(a, float(sigma)), 0.0))
     gain = jnp.clip((low(ts) + float(eps)) / (low(xs) + float(eps)), 1.0 / float(max_gain), float(max_gain))
     return jnp.reshape(xs * gain, shape).astype(out_dtype)
+
+
+def match_to_input(output, color, sigma: float, *, spike: float, floor: float,
+                   max_gain: float = float("inf")) -> jax.Array:
+    """`match_level` of a denoiser's ``output`` against its noisy input ``color`` with isolated spikes
+    cut (`clamp_outliers` with ``spike`` and ``floor``), ``eps`` 1 % of ``floor`` (module docstring)."""
+    for name, v in (("spike", spike), ("floor", floor)):
+        if not is_concrete(v) or np.ndim(v) or not 0 < float(v) < np.inf:
+            raise FilterError(f"argument '{name}' is {v!r}; expected a static finite number > 0")
+    return match_level(output, clamp_outliers(color, spike, floor), sigma, 0.01 * float(floor), max_gain=max_gain)

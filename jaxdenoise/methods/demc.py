@@ -55,10 +55,10 @@ from .. import color as color_ops
 from ..color import gamma
 from ..nn.state import call
 from ..errors import JaxdenoiseError
-from ..filters import clamp_outliers, match_level
+from ..filters import match_to_input
 from ..pipeline import carried_stat, carried_stats
 
-__all__ = ["Config", "needs", "required", "keep_exact_pixels", "match_input_level", "MATCH_EPS", "init",
+__all__ = ["Config", "needs", "required", "keep_exact_pixels", "match_input_level", "init",
            "init_from_data", "apply", "forward", "loss", "relative_loss", "make_dataset", "batch", "inputs",
            "frame_stats", "position_moments", "exposure_scale", "num_params", "widths_of", "FEATURES", "TRAIN",
            "FROZEN", "WEIGHTS"]
@@ -189,12 +189,6 @@ def _check(config: Config) -> None:
 def _check_window(window: Any, name: str) -> None:
     if not (isinstance(window, (int, np.integer)) and (window == 0 or window >= 3 and window % 2)):
         raise JaxdenoiseError(f"demc: {name} must be 0 (off) or an odd number of pixels >= 3, got {window!r}")
-
-
-def _clean_color(color: Any) -> jax.Array:
-    """The colour as the network reads it: float32, non-finite values and negatives as 0."""
-    color = jnp.asarray(color, jnp.float32)
-    return jnp.where(jnp.isfinite(color), jnp.maximum(color, 0.0), 0.0)
 
 
 def needs(config: Config) -> frozenset[str]:
@@ -406,7 +400,7 @@ def inputs(params: dict, buffers: Any, config: Config) -> tuple[jax.Array, jax.A
     ``stat.position_std``: its whole render's, `frame_stats`), else those of the array itself (at
     inference, the whole frame)."""
     get = _getter(buffers)
-    color = _clean_color(get("color")) * exposure_scale(buffers, config)
+    color = color_ops.radiance(get("color")) * exposure_scale(buffers, config)
     x_color = gamma(color, config.gamma)  # color ** (1 / gamma), with a finite gradient at 0 (Dr.Jit bridge)
     feats = jnp.concatenate([jnp.asarray(get(f), jnp.float32) for f in FEATURES], -1)
     feats = jnp.where(jnp.isfinite(feats), feats, 0.0)
@@ -452,21 +446,15 @@ def apply(params: dict, buffers: Buffers, config: Config) -> jax.Array:
     return keep(match_input_level(out, buffers, config)) if config.match_level else out
 
 
-# `match_input_level`'s eps, in exposure-scaled units: 1 % of the exposure level
-MATCH_EPS = 0.01 * color_ops.EXPOSURE_LEVEL
-
-
 def match_input_level(out: jax.Array, buffers: Any, config: Config) -> jax.Array:
     """``out`` with its level, low-passed by a Gaussian of ``config.match_level`` pixels, put at the
-    input colour's (`Config.match_level`): `jaxdenoise.filters.match_level` of the output against the
-    input with its isolated spikes cut (`jaxdenoise.filters.clamp_outliers`, factor
-    ``config.match_spike``, floor `jaxdenoise.color.EXPOSURE_LEVEL`), both in the exposure-scaled units
-    of `inputs` (eps `MATCH_EPS`), so ``f(k x) = k f(x)`` still holds. Any leading axes."""
+    input colour's (`Config.match_level`): `jaxdenoise.filters.match_to_input` (spike factor
+    ``config.match_spike``, floor `jaxdenoise.color.EXPOSURE_LEVEL`) on output and input in the
+    exposure-scaled units of `inputs`, so ``f(k x) = k f(x)`` still holds. Any leading axes."""
     scale = exposure_scale(buffers, config)  # (..., 1, 1, 1)
-    target = clamp_outliers(_clean_color(_getter(buffers)("color")) * scale, config.match_spike,
-                            color_ops.EXPOSURE_LEVEL)
-    gain = config.match_max_gain or float("inf")
-    return match_level(out * scale, target, config.match_level, MATCH_EPS, max_gain=gain) / scale
+    color = color_ops.radiance(_getter(buffers)("color")) * scale
+    return match_to_input(out * scale, color, config.match_level, spike=config.match_spike,
+                          floor=color_ops.EXPOSURE_LEVEL, max_gain=config.match_max_gain or float("inf")) / scale
 
 
 def keep_exact_pixels(out: jax.Array, buffers: Any, window: int = 0) -> jax.Array:

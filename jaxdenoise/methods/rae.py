@@ -57,7 +57,7 @@ import numpy as np
 from .. import color, metrics, nn, view
 from ..buffers import SAMPLE_COUNT_FIELD, Buffers
 from ..errors import JaxdenoiseError
-from ..filters import clamp_outliers
+from ..filters import clamp_outliers, match_to_input
 from ..pipeline import carried_stat, carried_stats
 
 __all__ = ["Config", "needs", "required", "init", "apply", "init_state", "step", "loss", "run_sequence", "inputs",
@@ -108,6 +108,15 @@ class Config:
     # stands in for the paper's path-space regularization (Sec. 3.1), which removed "sparse
     # high-intensity outliers" from its inputs at a small bias; our renders have them.
     outlier_clamp: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})
+    # The colour level at inference (ours, issue 34; docs/methods/rae.md "Colour level at inference";
+    # DEMC's, `jaxdenoise.methods.demc.Config.match_level`): with `match_level` > 0 each output frame's
+    # level, low-passed by a Gaussian of that many pixels, is put at its noisy input's
+    # (`jaxdenoise.filters.match_to_input`, spikes cut at `match_spike`, the gain within
+    # [1 / `match_max_gain`, `match_max_gain`], 0: no limit); needs exposure "frame". The recurrent
+    # state is not touched; inference only (training's loss reads the network's own output).
+    match_level: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})
+    match_spike: float = dataclasses.field(default=2.0, metadata={"fine_tune": True})
+    match_max_gain: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})
     # The training recipe the weights folder is named after: "" (the default weights) or "paper"
     # (Sec. 5.3: 1-spp fly-throughs, the paper's input; registered as "rae-paper").
     recipe: str = dataclasses.field(default="", metadata={"training": True})
@@ -156,6 +165,14 @@ def _check(config: Config) -> None:
     if not config.outlier_clamp >= 0 or (config.outlier_clamp and config.exposure != "frame"):
         raise JaxdenoiseError(f"rae: config.outlier_clamp must be >= 0 (0: off) and needs exposure 'frame' (the "
                               f"frame's level sets its floor), got {config.outlier_clamp!r} with {config.exposure!r}")
+    finite = all(np.isfinite(v) for v in (config.match_level, config.match_spike, config.match_max_gain))
+    if not (finite and config.match_level >= 0 and config.match_spike > 0
+            and (config.match_max_gain >= 1 or config.match_max_gain == 0)) \
+            or (config.match_level and config.exposure != "frame"):
+        raise JaxdenoiseError(f"rae: config.match_level must be finite and >= 0 (and needs exposure 'frame'), "
+                              f"match_spike finite and > 0, match_max_gain finite and >= 1 (0: no limit), got "
+                              f"{config.match_level}, {config.match_spike}, {config.match_max_gain} with "
+                              f"{config.exposure!r}")
     if not config.level_weight >= 0 or int(config.level_pool) < 1 or not config.level_eps > 0:
         raise JaxdenoiseError(f"rae: config.level_weight must be >= 0, config.level_pool >= 1 and config.level_eps "
                               f"> 0, got {config.level_weight!r}, {config.level_pool!r} and {config.level_eps!r}")
@@ -321,8 +338,7 @@ def inputs(frame: Any, config: Config, scale: Any = None) -> jax.Array:
     `exposure_scale` when the caller has it already (it divides the output by the same factor)."""
     get = lambda f: _get(frame, f)
     scale = exposure_scale(frame, config) if scale is None else scale
-    c = jnp.asarray(get("color"), jnp.float32)
-    c = jnp.where(jnp.isfinite(c), jnp.maximum(c, 0.0), 0.0) * scale
+    c = color.radiance(get("color")) * scale
     if config.outlier_clamp:
         c = clamp_outliers(c, config.outlier_clamp, color.EXPOSURE_LEVEL)
     demod = color.demodulate(c, _albedo(get("albedo")), config.albedo_eps)
@@ -395,8 +411,12 @@ def step(params: dict, state: tuple, buffers: Buffers, config: Config) -> tuple[
     scale = exposure_scale(buffers, config)
     x, size = nn.pad_to_multiple(inputs(buffers, config, scale), 32)
     state, y = _forward(params, x, state, config)
-    out = _output(nn.crop_to(y, size), _get(buffers, "albedo"), scale, config)
-    return state, jnp.maximum(out, 0.0)
+    out = jnp.maximum(_output(nn.crop_to(y, size), _get(buffers, "albedo"), scale, config), 0.0)
+    if config.match_level:
+        c = color.radiance(_get(buffers, "color")) * scale
+        out = match_to_input(out * scale, c, config.match_level, spike=config.match_spike,
+                             floor=color.EXPOSURE_LEVEL, max_gain=config.match_max_gain or float("inf")) / scale
+    return state, out
 
 
 def apply(params: dict, buffers: Buffers, config: Config) -> jax.Array:

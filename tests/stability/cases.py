@@ -474,6 +474,10 @@ FILTERS: dict[str, FilterSpec] = {
     "match_level": FilterSpec(
         lambda b, p: _filters_mod().match_level(b.color, b.albedo, p, 1e-3),
         frozenset({"color", "albedo"}), ("sigma",), static_param=True, convex=False),
+    "match_to_input": FilterSpec(
+        lambda b, p: _filters_mod().match_to_input(b.albedo, b.color, p, spike=2.0, floor=0.2, max_gain=1.1),
+        frozenset({"color", "albedo"}), ("sigma",), static_param=True, convex=False, source=lambda b: b.albedo,
+        grad_field="albedo"),
 }
 # Public names of jaxdenoise.filters that are not image filters (helpers and the error type).
 FILTER_HELPERS = frozenset({"FilterError", "gaussian_kernel_1d", "drop_constant_features", "DELTA", "ZETA"})
