@@ -57,7 +57,7 @@ TARGETS = {"input": 8.0, "input K2": 2.0, "reference": None}
 WINDOWS = (0, 3, 5, 7)
 SIGMAS = (8.0, 16.0, 32.0)
 GAINS = (1.05, 1.1, 1.2, 0.0)  # 0: no limit
-SPIKES = (2.0, 4.0)
+SPIKES = (4.0, 8.0)
 
 
 def measure_corrections(methods: list[str], folder: str, spps: list[int], sigma: float) -> dict:

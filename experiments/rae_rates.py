@@ -159,7 +159,9 @@ def choose_match(args) -> dict:
     settings = {"off": {"match_level": 0.0}}
     for sigma in (float(s) for s in args.sigmas.split(",")):
         for gain in (float(g) for g in args.gains.split(",")):
-            settings[f"s{sigma:g} g{gain:g}"] = {"match_level": sigma, "match_max_gain": gain, "match_spike": 2.0}
+            for spike in (float(k) for k in args.spikes.split(",")):
+                settings[f"s{sigma:g} g{gain:g} k{spike:g}"] = {"match_level": sigma, "match_max_gain": gain,
+                                                                "match_spike": spike}
     res = {"init": args.init, "val_data": args.val_data, "relmse_tolerance": args.relmse_tolerance,
            "rate_tolerance": args.rate_tolerance, "settings": {}}
     with tempfile.TemporaryDirectory() as tmp:
@@ -208,6 +210,7 @@ def main() -> None:
                     help="clamp: the largest change of a level (per channel and rate) a chosen factor may make")
     ap.add_argument("--sigmas", default="8,16,32", help="match: Gaussian sigmas (px) of the level match")
     ap.add_argument("--gains", default="1.1,1.2,1.3", help="match: gain limits of the level match")
+    ap.add_argument("--spikes", default="4,8", help="match: outlier cut factors of the level match's target")
     ap.add_argument("--relmse-tolerance", type=float, default=1.01,
                     help="match: the largest validation geometric mean a chosen setting may have, times off's")
     ap.add_argument("--rate-tolerance", type=float, default=1.10,

@@ -324,10 +324,17 @@ def test_match_level_puts_the_low_pass_level_at_the_target_and_keeps_the_detail(
     ints = match_level((image * 100).astype(np.int32), (target * 100).astype(np.int32), 8.0, 0.1)
     assert ints.dtype == np.float32 and float(np.max(np.abs(np.asarray(ints) / 100 - out))) < 0.02 * float(out.max())
     spiky = target.copy()
-    spiky[20, 20] = 1e4  # an isolated firefly: cut before it counts as level the image lacks
+    spiky[20, 20] = 1e4  # an isolated firefly and a 2x2 cluster: cut before they count as level the image lacks
+    spiky[30:32, 10:12] = 1e4
+    lum = spiky @ np.float32([0.2126, 0.7152, 0.0722])
+    pad = np.pad(lum, 1, mode="edge")
+    med = np.median([pad[dy:dy + 48, dx:dx + 40] for dy in range(3) for dx in range(3)], axis=0)
+    cut = np.minimum(lum, 2.0 * np.maximum(med, 0.1)) / lum
     np.testing.assert_allclose(np.asarray(match_to_input(image, spiky, 8.0, spike=2.0, floor=0.1, max_gain=1.5)),
-                               np.asarray(match_level(image, clamp_outliers(spiky, 2.0, 0.1), 8.0, 1e-3, max_gain=1.5)))
+                               np.asarray(match_level(image, spiky * cut[..., None], 8.0, 1e-3, max_gain=1.5)),
+                               rtol=1e-5)
     assert float(np.max(np.asarray(match_to_input(image, spiky, 8.0, spike=2.0, floor=0.1)))) < 2.0
+    assert float(np.max(np.asarray(match_level(image, clamp_outliers(spiky, 2.0, 0.1), 8.0, 1e-3)))) > 10.0
     for kw, match in (({"spike": 0.0, "floor": 0.1}, "'spike'"), ({"spike": 2.0, "floor": np.nan}, "'floor'")):
         with pytest.raises(FilterError, match=match):
             match_to_input(image, spiky, 8.0, **kw)

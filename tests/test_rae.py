@@ -302,7 +302,7 @@ def test_outlier_clamp_in_the_input():
 def test_level_match_setting():
     """``match_level``: the output's low-pass level is moved toward the input's within the gain limit
     (`jaxdenoise.filters.match_to_input`), the state is the network's, f(k x) = k f(x) holds; it needs
-    exposure "frame"; off for `rae` and `rae-paper`."""
+    exposure "frame"; on for `rae` (sigma 8, limit 1.3, cut 8), off for `rae-paper`."""
     cfg = rae.Config(widths=(4, 4, 6, 6, 8), bottleneck=8, exposure="frame")
     on = dataclasses.replace(cfg, match_level=4.0, match_max_gain=1.2)
     p = rae.init(jax.random.PRNGKey(1), cfg)
@@ -320,7 +320,7 @@ def test_level_match_setting():
                                    k * np.asarray(out), rtol=2e-4, atol=1e-6 * k)
     with pytest.raises(ValueError, match="match_level"):
         rae.num_params(dataclasses.replace(TINY, match_level=8.0))  # TINY has exposure "none"
-    assert get("rae").config.match_level == 0.0 and get("rae-paper").config.match_level == 0.0
+    assert get("rae").config.match_level == 8.0 and get("rae-paper").config.match_level == 0.0
 
 
 def test_rate_channel_and_linear_input():

@@ -132,12 +132,12 @@ class Config:
     exact_window: int = dataclasses.field(default=0, metadata={"fine_tune": True})
     # The colour level at inference (ours, issue 33; docs/methods/demc.md "Colour level at inference"):
     # with `match_level` > 0 the output's level, averaged by a Gaussian of that many pixels, is put at
-    # the noisy input's (`jaxdenoise.filters.match_level`; the input with its isolated spikes cut at
-    # `match_spike` times their neighbours, `jaxdenoise.filters.clamp_outliers`, in the exposure-scaled
-    # units), the gain limited to [1 / `match_max_gain`, `match_max_gain`] (0: no limit); 0: the
-    # network's own level. Inference only.
+    # the noisy input's (`jaxdenoise.filters.match_to_input`: the input with its outliers cut at
+    # `match_spike` times their 3x3 median luminance, in the exposure-scaled units), the gain limited
+    # to [1 / `match_max_gain`, `match_max_gain`] (0: no limit); 0: the network's own level.
+    # Inference only.
     match_level: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})
-    match_spike: float = dataclasses.field(default=2.0, metadata={"fine_tune": True})
+    match_spike: float = dataclasses.field(default=4.0, metadata={"fine_tune": True})
     match_max_gain: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})  # 0: no limit
     train_crop: int = 96
     train_batch: int = 32

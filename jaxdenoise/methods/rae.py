@@ -111,11 +111,11 @@ class Config:
     # The colour level at inference (ours, issue 34; docs/methods/rae.md "Colour level at inference";
     # DEMC's, `jaxdenoise.methods.demc.Config.match_level`): with `match_level` > 0 each output frame's
     # level, low-passed by a Gaussian of that many pixels, is put at its noisy input's
-    # (`jaxdenoise.filters.match_to_input`, spikes cut at `match_spike`, the gain within
+    # (`jaxdenoise.filters.match_to_input`, outliers cut at `match_spike` x their 3x3 median, the gain within
     # [1 / `match_max_gain`, `match_max_gain`], 0: no limit); needs exposure "frame". The recurrent
     # state is not touched; inference only (training's loss reads the network's own output).
     match_level: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})
-    match_spike: float = dataclasses.field(default=2.0, metadata={"fine_tune": True})
+    match_spike: float = dataclasses.field(default=4.0, metadata={"fine_tune": True})
     match_max_gain: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})
     # The training recipe the weights folder is named after: "" (the default weights) or "paper"
     # (Sec. 5.3: 1-spp fly-throughs, the paper's input; registered as "rae-paper").
