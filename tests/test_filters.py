@@ -335,6 +335,10 @@ def test_match_level_puts_the_low_pass_level_at_the_target_and_keeps_the_detail(
                                rtol=1e-5)
     assert float(np.max(np.asarray(match_to_input(image, spiky, 8.0, spike=2.0, floor=0.1)))) < 2.0
     assert float(np.max(np.asarray(match_level(image, clamp_outliers(spiky, 2.0, 0.1), 8.0, 1e-3)))) > 10.0
+    np.testing.assert_allclose(np.asarray(clamp_outliers(spiky, 2.0, 0.1, against="median")),
+                               spiky * cut[..., None], rtol=1e-6)
+    with pytest.raises(FilterError, match="'against'"):
+        clamp_outliers(spiky, 2.0, 0.1, against="mean")
     for kw, match in (({"spike": 0.0, "floor": 0.1}, "'spike'"), ({"spike": 2.0, "floor": np.nan}, "'floor'")):
         with pytest.raises(FilterError, match=match):
             match_to_input(image, spiky, 8.0, **kw)

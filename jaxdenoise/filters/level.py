@@ -18,11 +18,12 @@ over the low-pass's reach as a halo: ``max_gain`` bounds what that can add.
 `match_to_input` is how a denoiser uses it (`demc`, `rae`): ``target`` is its noisy input ``color``
 with outliers cut, each pixel's Rec. 709 luminance limited to ``spike`` times the larger of ``floor``
 and the median luminance of its 3 x 3 block (border repeated), hue kept: a firefly the network
-rightly removed would otherwise count as level it lacks. The median, unlike the brightest neighbour
-(`clamp_outliers`), also cuts a cluster of up to 4 outlier pixels, which a network may draw too
-bright itself: cut by the neighbour maximum, such a cluster lifts the target's low-pass and the gain
-brightens the network's blob further (docs/methods/rae.md "Colour level at inference"). ``eps`` is
-1 % of ``floor`` (the level the caller's exposure scaling brings a frame to).
+rightly removed would otherwise count as level it lacks (`clamp_outliers` with ``against="median"``).
+The median, unlike the brightest neighbour (`clamp_outliers`'s default), also cuts a cluster of up to
+4 outlier pixels, which a network may draw too bright itself: cut by the neighbour maximum, such a
+cluster lifts the target's low-pass and the gain brightens the network's blob further
+(docs/methods/rae.md "Colour level at inference"). ``eps`` is 1 % of ``floor`` (the level the caller's
+exposure scaling brings a frame to).
 
 Homogeneous of degree 1 in ``(image, target, eps)`` together; ``sigma`` 0 gives ``image * (target +
 eps) / (image + eps)``. Shapes: ``(..., H, W, C)`` with any leading axes (frames of a batch are
@@ -37,10 +38,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..arrays import compute_dtype, edge_blocks, is_concrete, median9
-from ..color import luminance
+from ..arrays import compute_dtype, is_concrete
 from ._common import FilterError, as_image
 from .gaussian import gaussian
+from .spikes import clamp_outliers
 
 
 def match_level(image, target, sigma: float, eps: float, *, max_gain: float = float("inf")) -> jax.Array:
@@ -76,12 +77,5 @@ def match_to_input(output, color, sigma: float, *, spike: float, floor: float,
     for name, v in (("spike", spike), ("floor", floor)):
         if not is_concrete(v) or np.ndim(v) or not 0 < float(v) < np.inf:
             raise FilterError(f"argument '{name}' is {v!r}; expected a static finite number > 0")
-    shape = tuple(np.shape(color))
-    if len(shape) < 3 or shape[-1] != 3:
-        raise FilterError(f"argument 'color' has shape {shape}; expected (..., H, W, 3)")
-    c = as_image(jnp.reshape(color, (-1,) + shape[-2:]), "color").reshape(shape)  # sizes, NaN/Inf named
-    lum = luminance(c)[..., None]
-    limit = float(spike) * jnp.maximum(median9(edge_blocks(lum, 1, axis=0))[..., 0], float(floor))
-    cut = lum[..., 0] > limit  # then lum > 0
-    target = c * jnp.where(cut, limit / jnp.where(cut, lum[..., 0], 1.0), 1.0)[..., None]
+    target = clamp_outliers(color, spike, floor, against="median")
     return match_level(output, target, sigma, 0.01 * float(floor), max_gain=max_gain)

@@ -2,10 +2,12 @@
 
 ``remove_spikes(image, *, n_std=2.0, block_radius=1) -> image``
 
-``clamp_outliers(color, factor, floor) -> color`` (ours, `rae`'s input: docs/methods/rae.md
+``clamp_outliers(color, factor, floor, *, against="neighbours") -> color`` (ours, `rae`'s input: docs/methods/rae.md
 "Outliers"): each pixel's Rec. 709 luminance limited to ``factor`` times the larger of ``floor`` and
 the largest luminance among its 8 neighbours (neighbours outside the image count as 0), the hue kept.
-A noisy input's isolated spike (a firefly) far above both is cut; a light, a highlight or an edge (a
+With ``against="median"`` the reference is instead the median luminance of the pixel's 3 x 3
+block (border repeated), which also cuts a cluster of up to 4 outlier pixels (`match_to_input`'s
+target). A noisy input's isolated spike (a firefly) far above both is cut; a light, a highlight or an edge (a
 bright neighbour) and anything below ``factor * floor`` pass unchanged (``factor`` 0: every lit pixel
 is cut to black). Unlike the filters' ``(H, W, C)`` convention it takes any leading axes (training
 batches of sequences), and ``C`` must be 3.
@@ -53,7 +55,7 @@ def remove_spikes(image, *, n_std: float = 2.0, block_radius: int = 1) -> jax.Ar
     return jnp.where(spike, med, x).astype(out_dtype)
 
 
-def clamp_outliers(color, factor: float, floor: float) -> jax.Array:
+def clamp_outliers(color, factor: float, floor: float, *, against: str = "neighbours") -> jax.Array:
     """``(..., H, W, 3)`` colour with isolated luminance spikes cut (module docstring)."""
     shape = tuple(np.shape(color))
     if len(shape) < 3 or shape[-1] != 3:
@@ -64,11 +66,16 @@ def clamp_outliers(color, factor: float, floor: float) -> jax.Array:
         if not is_concrete(v) or not np.isfinite(v) or float(v) < least:
             raise FilterError(f"argument '{name}' is {v!r}; expected a static finite number "
                               + (">= 0" if least == 0 else "> 0"))
+    if against not in ("neighbours", "median"):
+        raise FilterError(f"argument 'against' is {against!r}; expected 'neighbours' or 'median'")
     lum = luminance(c)
     lead, (h, w) = lum.shape[:-2], lum.shape[-2:]
-    pad = jnp.pad(lum, [(0, 0)] * len(lead) + [(1, 1), (1, 1)])
-    near = jnp.max(jnp.stack([pad[..., 1 + dy:1 + dy + h, 1 + dx:1 + dx + w]
-                              for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]), axis=0)
+    if against == "median":  # the 3 x 3 block's median, border repeated: a cluster of <= 4 pixels is cut too
+        near = median9(edge_blocks(lum[..., None], 1, axis=0))[..., 0]
+    else:
+        pad = jnp.pad(lum, [(0, 0)] * len(lead) + [(1, 1), (1, 1)])
+        near = jnp.max(jnp.stack([pad[..., 1 + dy:1 + dy + h, 1 + dx:1 + dx + w]
+                                  for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]), axis=0)
     limit = float(factor) * jnp.maximum(near, float(floor))
     cut = lum > limit  # then lum > 0: the inner where keeps the unused branch's gradient finite at lum = 0
     return c * jnp.where(cut, limit / jnp.where(cut, lum, 1.0), 1.0)[..., None]

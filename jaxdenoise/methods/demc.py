@@ -58,7 +58,7 @@ from ..errors import JaxdenoiseError
 from ..filters import match_to_input
 from ..pipeline import carried_stat, carried_stats
 
-__all__ = ["Config", "needs", "required", "keep_exact_pixels", "match_input_level", "init",
+__all__ = ["Config", "needs", "required", "keep_exact_pixels", "exact_pixels", "match_input_level", "init",
            "init_from_data", "apply", "forward", "loss", "relative_loss", "make_dataset", "batch", "inputs",
            "frame_stats", "position_moments", "exposure_scale", "num_params", "widths_of", "FEATURES", "TRAIN",
            "FROZEN", "WEIGHTS"]
@@ -439,11 +439,12 @@ def apply(params: dict, buffers: Buffers, config: Config) -> jax.Array:
     BatchNorm running statistics); with ``keep_exact``, `keep_exact_pixels`; with ``match_level``,
     `match_input_level` (exact pixels kept before and after, so a network's error on them moves no
     level around them)."""
-    def keep(y):
-        return keep_exact_pixels(y, buffers, config.exact_window) if config.keep_exact else y
-
-    out = keep(_run(params, buffers, config))
-    return keep(match_input_level(out, buffers, config)) if config.match_level else out
+    out = _run(params, buffers, config)
+    if not config.keep_exact:
+        return match_input_level(out, buffers, config) if config.match_level else out
+    exact, color = exact_pixels(buffers, config.exact_window, out.dtype)
+    out = jnp.where(exact, color, out)
+    return jnp.where(exact, color, match_input_level(out, buffers, config)) if config.match_level else out
 
 
 def match_input_level(out: jax.Array, buffers: Any, config: Config) -> jax.Array:
@@ -465,15 +466,22 @@ def keep_exact_pixels(out: jax.Array, buffers: Any, window: int = 0) -> jax.Arra
     in every pixel (independent samples agreed). Kept pixels are lit (not black) and finite. By the Buffers
     contract (``color_var``: the variance of the pixel's samples) the first rule keeps exact
     estimates; a renderer that writes 0 for an unknown variance would have every lit pixel kept."""
+    exact, c = exact_pixels(buffers, window, out.dtype)
+    return jnp.where(exact, c, out)
+
+
+def exact_pixels(buffers: Any, window: int = 0, dtype: Any = jnp.float32) -> tuple[jax.Array, jax.Array]:
+    """The mask ``(..., H, W, 1)`` of the pixels `keep_exact_pixels` keeps, and the colour (as
+    ``dtype``) they keep."""
     _check_window(window, "keep_exact_pixels' window")
     get = _getter(buffers, optional=True)
     var, spp = get("color_var"), get("spp")
-    c = jnp.asarray(get("color"), out.dtype)
+    c = jnp.asarray(get("color"), dtype)
     lit = (jnp.max(c, axis=-1, keepdims=True) > 0) & jnp.all(jnp.isfinite(c), axis=-1, keepdims=True)
     many = exact = jnp.asarray(False)  # `many`: the variance rule applies
     if var is not None and spp is not None:
         spp = jnp.asarray(spp, jnp.float32)
-        many = jnp.reshape(spp, spp.shape + (1,) * (out.ndim - spp.ndim)) >= 2 if spp.ndim else spp >= 2
+        many = jnp.reshape(spp, spp.shape + (1,) * (c.ndim - spp.ndim)) >= 2 if spp.ndim else spp >= 2
         exact = many & (jnp.max(jnp.asarray(var), axis=-1, keepdims=True) == 0)
     if window:
         h, w, r = c.shape[-3], c.shape[-2], window // 2
@@ -484,7 +492,7 @@ def keep_exact_pixels(out: jax.Array, buffers: Any, window: int = 0) -> jax.Arra
                 same = p[..., dy:dy + h, dx:dx + w, :] == c
                 agree = agree & jnp.all(same, axis=-1, keepdims=True)
         exact = exact | (~many & agree)
-    return jnp.where(exact & lit, c, out)
+    return exact & lit, c
 
 
 def loss(params: dict, batch: dict, config: Config):
