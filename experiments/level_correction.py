@@ -27,10 +27,12 @@ rebuilt scene):
 
 1. ``exact_window`` (the 1-spp exact-pixel rule, `Config.exact_window`) over `WINDOWS`, ``keep_exact``
    on, ``match_level`` off: the lowest geometric mean over (folder, rate) of the mean RelMSE;
-2. with that window, ``match_level`` (sigma) x ``match_max_gain`` x ``match_spike`` over `SIGMAS`,
-   `GAINS`, `SPIKES`, and off (0): among the settings whose per-channel level (median over frames)
-   is within ``--level-tolerance`` of 1 at every folder and rate, the lowest geometric mean; off when
-   none is.
+2. with that window, ``match_level`` (sigma) x ``match_max_gain`` x the cut over `SIGMAS`, `GAINS`
+   and either a fixed ``match_spike`` from `SPIKES` (labels ``kN``) or one scaled by the frame's rate
+   (``match_spike_by_rate``, a single sample's factor from `RATE_SPIKES`, labels ``rN``: a pixel of
+   n spp cut at ``1 + (N - 1) / sqrt(n)`` times its median), and off (0): among the settings whose
+   per-channel level (median over frames) is within ``--level-tolerance`` of 1 at every folder and
+   rate, the lowest geometric mean; off when none is.
 
     python experiments/level_correction.py --choose jaxdenoise/weights/demc \
         --data data/library_val,data/procedural_val --out docs/results/level_correction
@@ -58,6 +60,8 @@ WINDOWS = (0, 3, 5, 7)
 SIGMAS = (8.0, 16.0, 32.0)
 GAINS = (1.05, 1.1, 1.2, 0.0)  # 0: no limit
 SPIKES = (4.0, 8.0)
+CHUNK = 12  # settings measured per child process (`score_settings`)
+RATE_SPIKES = (8.0, 16.0)  # `match_spike_by_rate`: one sample's factor (4 spp: 4.5 and 8.5)
 
 
 def measure_corrections(methods: list[str], folder: str, spps: list[int], sigma: float) -> dict:
@@ -97,22 +101,34 @@ def measure_corrections(methods: list[str], folder: str, spps: list[int], sigma:
     return res
 
 
+def _measure(labels: list[str], folders: list[str]) -> dict:
+    from demc_levels import measure
+
+    return measure(labels, folders, [1, 4, 16, 64])
+
+
 def score_settings(init: str, settings: dict[str, dict], folders: list[str]) -> dict:
     """For each label -> `demc.Config` overrides: the weights in ``init`` with them, measured by
     `demc_levels.measure` on ``folders`` at every rate they hold: mean RelMSE per (folder, rate), their
     geometric mean, the level (median over frames, R/G/B) and the emitters (median over frames that
     show one)."""
+    import multiprocessing
     import tempfile
+    from concurrent.futures import ProcessPoolExecutor
 
-    from demc_levels import measure
     from jaxdenoise import checkpoint
     from jaxdenoise.api import resolve
 
     base, params = resolve("demc", init)
+    lv: dict = {"methods": {}}
     with tempfile.TemporaryDirectory() as tmp:
         labels = [f"{k}={checkpoint.save(Path(tmp) / k, params, base.with_config(**v).config, {'method': 'demc'})}"
                   for k, v in settings.items()]
-        lv = measure(labels, folders, [1, 4, 16, 64])
+        # a child process per `CHUNK` settings: each setting compiles its own programs, and one process
+        # compiling them all ran out of memory maps (XLA's LLVM: "Cannot allocate memory") after ~45
+        for i in range(0, len(labels), CHUNK):
+            with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as ex:
+                lv["methods"].update(ex.submit(_measure, labels[i:i + CHUNK], folders).result()["methods"])
     out = {}
     for label, over in settings.items():
         rec = lv["methods"][label]
@@ -136,10 +152,10 @@ def choose(init: str, folders: list[str], tolerance: float) -> dict:
     grid = {"off": {"keep_exact": True, "exact_window": window, "match_level": 0.0}}
     for sigma in SIGMAS:
         for gain in GAINS:
-            for spike in SPIKES:
-                grid[f"s{sigma:g} g{gain:g} k{spike:g}"] = {"keep_exact": True, "exact_window": window,
-                                                           "match_level": sigma, "match_max_gain": gain,
-                                                           "match_spike": spike}
+            for spike, by_rate in [(k, False) for k in SPIKES] + [(k, True) for k in RATE_SPIKES]:
+                label = f"s{sigma:g} g{gain:g} {'r' if by_rate else 'k'}{spike:g}"
+                grid[label] = {"keep_exact": True, "exact_window": window, "match_level": sigma,
+                               "match_max_gain": gain, "match_spike": spike, "match_spike_by_rate": by_rate}
     res["levels"] = score_settings(init, grid, folders)
     for v in res["levels"].values():
         v["level_ok"] = all(abs(x - 1) <= tolerance for lv in v["level"].values() for x in lv)
@@ -156,7 +172,9 @@ def choice_page(res: dict) -> str:
     lines = ["# `demc`'s inference settings: the exact-pixel window and the level match", "",
              f"Weights `{res['init']}`, validation folders {', '.join(f'`{f}`' for f in res['data'])}, every "
              "rate they hold (experiments/level_correction.py `--choose`; docs/methods/demc.md \"Colour level at "
-             "inference\"; `g0`: no gain limit). RelMSE: mean over frames; level: per channel, the median over "
+             "inference\"; `g0`: no gain limit; `kN`: outliers cut at N times their 3x3 median, `rN`: at "
+             "1 + (N - 1) / sqrt(spp) times, `match_spike_by_rate`). RelMSE: mean over frames; level: per "
+             "channel, the median over "
              "frames of the median 15x15 box ratio to the reference on surface pixels (experiments/demc_levels.py); "
              "emitters: the output over the reference on the interior of area lights, median over the frames that "
              "show one.", "",
@@ -168,7 +186,8 @@ def choice_page(res: dict) -> str:
         lines.append(f"| {k} | " + " | ".join(num(v["relmse"][c], ".4f") for c in cols)
                      + f" | {em} | {num(v['geomean'], '.5f')} |")
     lines += ["", f"Chosen: `exact_window = {res['chosen']['exact_window']}` (lowest geometric mean).", "",
-              "## 2. The level match (`match_level` sigma px, `match_max_gain`, `match_spike`)", "",
+              "## 2. The level match (`match_level` sigma px, `match_max_gain`, `match_spike`, "
+              "`match_spike_by_rate`)", "",
               "| setting | " + " | ".join(f"level {c}" for c in cols) + f" | within {num(res['level_tolerance'], 'g')} "
               "| geomean | x off |", "|---|" + "---|" * len(cols) + "---|---:|---:|"]
     for k, v in sorted(res["levels"].items(), key=lambda kv: kv[1]["geomean"]):

@@ -37,8 +37,10 @@ one. Written to ``OUT/outlier_clamp.json``:
 
 ``match`` chooses the level match at inference (`jaxdenoise.methods.rae.Config.match_level`,
 ``match_max_gain``; docs/methods/rae.md "Colour level at inference") of the weights in ``--init`` the
-same way, no training: ``--sigmas`` x ``--gains`` (spike factor 2, DEMC's) and off, each scored by the
-validation RelMSE (state carried) and the single frames' surface level. The rule (the issue's 3 %
+same way, no training: ``--sigmas`` x ``--gains`` x the cut (a fixed factor from ``--spikes``, labels
+``kN``, or one sample's factor from ``--rate-spikes`` scaled by the frame's rate, labels ``rN``:
+``match_spike_by_rate``; none by default) and off, each scored by the validation RelMSE (state
+carried) and the single frames' surface level. The rule (the issue's 3 %
 is out of reach at 1 spp, where a gain that large spreads outliers): among the settings whose
 geometric-mean RelMSE is at most ``--relmse-tolerance`` times off's and whose RelMSE at every rate is at
 most ``--rate-tolerance`` times off's there, the one whose largest distance of a level from 1 (every
@@ -159,9 +161,11 @@ def choose_match(args) -> dict:
     settings = {"off": {"match_level": 0.0}}
     for sigma in (float(s) for s in args.sigmas.split(",")):
         for gain in (float(g) for g in args.gains.split(",")):
-            for spike in (float(k) for k in args.spikes.split(",")):
-                settings[f"s{sigma:g} g{gain:g} k{spike:g}"] = {"match_level": sigma, "match_max_gain": gain,
-                                                                "match_spike": spike}
+            spikes = [(float(k), False) for k in args.spikes.split(",")]
+            spikes += [(float(k), True) for k in args.rate_spikes.split(",") if k.strip()]
+            for spike, by_rate in spikes:
+                settings[f"s{sigma:g} g{gain:g} {'r' if by_rate else 'k'}{spike:g}"] = {
+                    "match_level": sigma, "match_max_gain": gain, "match_spike": spike, "match_spike_by_rate": by_rate}
     res = {"init": args.init, "val_data": args.val_data, "relmse_tolerance": args.relmse_tolerance,
            "rate_tolerance": args.rate_tolerance, "settings": {}}
     with tempfile.TemporaryDirectory() as tmp:
@@ -211,6 +215,9 @@ def main() -> None:
     ap.add_argument("--sigmas", default="8,16,32", help="match: Gaussian sigmas (px) of the level match")
     ap.add_argument("--gains", default="1.1,1.2,1.3", help="match: gain limits of the level match")
     ap.add_argument("--spikes", default="4,8", help="match: outlier cut factors of the level match's target")
+    ap.add_argument("--rate-spikes", default="", help="match: one sample's cut factors with match_spike_by_rate "
+                    "(labels rN: a frame of n spp cut at 1 + (N - 1) / sqrt(n) times its median; default none, as "
+                    "the shipped choice was made)")
     ap.add_argument("--relmse-tolerance", type=float, default=1.01,
                     help="match: the largest validation geometric mean a chosen setting may have, times off's")
     ap.add_argument("--rate-tolerance", type=float, default=1.10,

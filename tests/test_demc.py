@@ -114,7 +114,13 @@ def test_match_input_level_puts_the_output_at_the_input_level():
     for k in (np.float32(8.0), np.float32(3.0), np.float32(1 / 16)):
         scaled = demc.match_input_level(jnp.asarray(k * dark), dataclasses.replace(fr, color=k * fr.color), cfg)
         np.testing.assert_allclose(np.asarray(scaled), k * got, rtol=1e-5)
-    for bad in ({"match_level": -1.0}, {"match_spike": 0.0}, {"match_max_gain": 0.5}, {"match_level": np.inf}):
+    four = dataclasses.replace(fr, spp=4)  # by rate: one sample's factor 7 cuts a 4-spp frame at 4
+    np.testing.assert_array_equal(
+        np.asarray(demc.match_input_level(jnp.asarray(dark), four, dataclasses.replace(cfg, match_spike=7.0,
+                                                                                          match_spike_by_rate=True))),
+        np.asarray(demc.match_input_level(jnp.asarray(dark), four, dataclasses.replace(cfg, match_spike=4.0))))
+    for bad in ({"match_level": -1.0}, {"match_spike": 0.0}, {"match_max_gain": 0.5}, {"match_level": np.inf},
+                {"match_spike": 0.5, "match_spike_by_rate": True}):
         with pytest.raises(JaxdenoiseError, match="match_"):
             demc.widths_of(demc.Config(**bad))
 

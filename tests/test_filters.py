@@ -292,7 +292,12 @@ def test_clamp_outliers_cuts_isolated_spikes_only():
     batch = np.stack([c, c[::-1]])[None]  # (1, 2, 8, 9, 3)
     np.testing.assert_allclose(np.asarray(clamp_outliers(batch, 4.0, 0.2))[0, 1],
                                np.asarray(clamp_outliers(c[::-1], 4.0, 0.2)))
+    per_image = np.asarray(clamp_outliers(np.stack([c, c[::-1]]), np.float32([4.0, 1e4]), 0.2))  # a factor per image
+    np.testing.assert_array_equal(per_image[0], out)
+    np.testing.assert_array_equal(per_image[1], c[::-1])
     for bad, match in (((c[..., :2], 4.0, 0.2), "'color'"), ((c, -1.0, 0.2), "'factor'"),
+                       ((c, np.float32([4.0, 2.0]), 0.2), "'factor' has shape"),
+                       ((np.stack([c, c]), np.float32([4.0, np.nan]), 0.2), "'factor' holds"),
                        ((c, 4.0, float("nan")), "'floor'"), ((c, 4.0, 0.0), "'floor'")):
         with pytest.raises(FilterError, match=match):
             clamp_outliers(*bad)
@@ -342,6 +347,17 @@ def test_match_level_puts_the_low_pass_level_at_the_target_and_keeps_the_detail(
     for kw, match in (({"spike": 0.0, "floor": 0.1}, "'spike'"), ({"spike": 2.0, "floor": np.nan}, "'floor'")):
         with pytest.raises(FilterError, match=match):
             match_to_input(image, spiky, 8.0, **kw)
+    for spp in (1, 4, 16):  # by rate: a single sample's factor, cut at 1 + (spike - 1) / sqrt(spp)
+        cut = 1 + 8 / spp ** 0.5
+        np.testing.assert_array_equal(np.asarray(match_to_input(image, spiky, 8.0, spike=9.0, floor=0.1, spp=spp)),
+                                      np.asarray(match_to_input(image, spiky, 8.0, spike=cut, floor=0.1)))
+    frames = np.stack([spiky, spiky[::-1]])  # one rate per frame, also traced
+    by_frame = jax.jit(lambda x, n: match_to_input(x, frames, 8.0, spike=9.0, floor=0.1, spp=n))
+    np.testing.assert_allclose(np.asarray(by_frame(np.stack([image, image]), np.float32([1.0, 16.0])))[1],
+                               np.asarray(match_to_input(image, spiky[::-1], 8.0, spike=3.0, floor=0.1)), rtol=1e-6)
+    for kw, match in (({"spike": 0.5, "spp": 4}, "'spike'"), ({"spike": 2.0, "spp": 0}, "'spp'")):
+        with pytest.raises(FilterError, match=match):
+            match_to_input(image, spiky, 8.0, floor=0.1, **kw)
     dark = np.asarray(match_level(image, np.zeros_like(image), 8.0, 1e-3))  # a black target: gain eps / (G + eps)
     assert np.all(np.isfinite(dark)) and float(dark.max()) < 0.02 * float(image.max())
     for bad, match in (((image, target[:-1], 8.0, 1e-3), "'target'"), ((image[0], target[0], 8.0, 1e-3), "'image'"),

@@ -318,8 +318,14 @@ def test_level_match_setting():
     for k in (1 / 16, 3.0):
         np.testing.assert_allclose(np.asarray(rae.apply(p, fr.replace(color=fr.color * np.float32(k)), on)),
                                    k * np.asarray(out), rtol=2e-4, atol=1e-6 * k)
+    four = fr.replace(spp=4)  # by rate: one sample's factor 7 cuts a 4-spp frame as a fixed 4 does
+    np.testing.assert_array_equal(
+        np.asarray(rae.step(p, s0, four, dataclasses.replace(on, match_spike=7.0, match_spike_by_rate=True))[1]),
+        np.asarray(rae.step(p, s0, four, dataclasses.replace(on, match_spike=4.0))[1]))
     with pytest.raises(ValueError, match="match_level"):
         rae.num_params(dataclasses.replace(TINY, match_level=8.0))  # TINY has exposure "none"
+    with pytest.raises(ValueError, match="match_spike_by_rate"):
+        rae.num_params(dataclasses.replace(on, match_spike=0.5, match_spike_by_rate=True))
     assert get("rae").config.match_level == 8.0 and get("rae-paper").config.match_level == 0.0
 
 

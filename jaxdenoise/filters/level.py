@@ -2,7 +2,7 @@
 "Colour level at inference").
 
 ``match_level(image, target, sigma, eps, *, max_gain=inf) -> image``
-``match_to_input(output, color, sigma, *, spike, floor, max_gain=inf) -> image``
+``match_to_input(output, color, sigma, *, spike, floor, max_gain=inf, spp=None) -> image``
 
 Each channel of ``image`` times the gain ``(G(target) + eps) / (G(image) + eps)``, limited to
 ``[1 / max_gain, max_gain]``, where ``G`` is `gaussian` of ``sigma`` pixels (border renormalised) and
@@ -24,6 +24,13 @@ The median, unlike the brightest neighbour (`clamp_outliers`'s default), also cu
 cluster lifts the target's low-pass and the gain brightens the network's blob further
 (docs/methods/rae.md "Colour level at inference"). ``eps`` is 1 % of ``floor`` (the level the caller's
 exposure scaling brings a frame to).
+
+With ``spp`` (the frame's samples per pixel: a number, or one per frame over the leading axes) the
+cut scales with the noise: ``spike`` is then a single sample's factor and a pixel of ``n`` samples is
+cut at ``1 + (spike - 1) / sqrt(n)`` times its median (ours, docs/methods/demc.md "Colour level at
+inference"). A fixed factor tuned on denser frames cuts ordinary 1-spp noise, whose spread about the
+median is ``sqrt(n)`` times wider, and leaves the target dark; scaled, the cut removes the same
+share of a pixel's spread at every rate. ``spike`` must then be at least 1.
 
 Homogeneous of degree 1 in ``(image, target, eps)`` together; ``sigma`` 0 gives ``image * (target +
 eps) / (image + eps)``. Shapes: ``(..., H, W, C)`` with any leading axes (frames of a batch are
@@ -70,12 +77,19 @@ def match_level(image, target, sigma: float, eps: float, *, max_gain: float = fl
 
 
 def match_to_input(output, color, sigma: float, *, spike: float, floor: float,
-                   max_gain: float = float("inf")) -> jax.Array:
+                   max_gain: float = float("inf"), spp=None) -> jax.Array:
     """`match_level` of a denoiser's ``output`` against its noisy input ``color`` (``(..., H, W, 3)``)
-    with outliers cut at ``spike`` times the larger of ``floor`` and their 3 x 3 median luminance,
-    ``eps`` 1 % of ``floor`` (module docstring)."""
+    with outliers cut at ``spike`` times the larger of ``floor`` and their 3 x 3 median luminance
+    (with ``spp``: ``1 + (spike - 1) / sqrt(spp)`` times), ``eps`` 1 % of ``floor`` (module docstring)."""
     for name, v in (("spike", spike), ("floor", floor)):
         if not is_concrete(v) or np.ndim(v) or not 0 < float(v) < np.inf:
             raise FilterError(f"argument '{name}' is {v!r}; expected a static finite number > 0")
-    target = clamp_outliers(color, spike, floor, against="median")
+    factor = float(spike)
+    if spp is not None:
+        if factor < 1:
+            raise FilterError(f"argument 'spike' is {spike!r}; with 'spp' expected a single sample's factor >= 1")
+        if is_concrete(spp) and not np.all(np.asarray(spp, np.float64) >= 1):
+            raise FilterError(f"argument 'spp' is {spp!r}; expected samples per pixel >= 1")
+        factor = 1.0 + (factor - 1.0) / jnp.sqrt(jnp.maximum(jnp.asarray(spp, jnp.float32), 1.0))
+    target = clamp_outliers(color, factor, floor, against="median")
     return match_level(output, target, sigma, 0.01 * float(floor), max_gain=max_gain)

@@ -7,7 +7,9 @@
 the largest luminance among its 8 neighbours (neighbours outside the image count as 0), the hue kept.
 With ``against="median"`` the reference is instead the median luminance of the pixel's 3 x 3
 block (border repeated), which also cuts a cluster of up to 4 outlier pixels (`match_to_input`'s
-target). A noisy input's isolated spike (a firefly) far above both is cut; a light, a highlight or an edge (a
+target). ``factor`` is a static number, or one per image: an array broadcastable to the leading
+axes (`match_to_input`'s factor by sample count; a traced array is not checked). A noisy input's
+isolated spike (a firefly) far above both is cut; a light, a highlight or an edge (a
 bright neighbour) and anything below ``factor * floor`` pass unchanged (``factor`` 0: every lit pixel
 is cut to black). Unlike the filters' ``(H, W, C)`` convention it takes any leading axes (training
 batches of sequences), and ``C`` must be 3.
@@ -62,20 +64,42 @@ def clamp_outliers(color, factor: float, floor: float, *, against: str = "neighb
         raise FilterError(f"argument 'color' has shape {shape}; expected (..., H, W, 3)")
     as_image(jnp.reshape(color, (-1,) + shape[-2:]), "color")  # sizes and (concrete) NaN/Inf checked by name
     c = jnp.asarray(color)
-    for name, v, least in (("factor", factor, 0.0), ("floor", floor, 1e-30)):
-        if not is_concrete(v) or not np.isfinite(v) or float(v) < least:
-            raise FilterError(f"argument '{name}' is {v!r}; expected a static finite number "
-                              + (">= 0" if least == 0 else "> 0"))
+    if not is_concrete(floor) or np.ndim(floor) or not np.isfinite(floor) or float(floor) < 1e-30:
+        raise FilterError(f"argument 'floor' is {floor!r}; expected a static finite number > 0")
     if against not in ("neighbours", "median"):
         raise FilterError(f"argument 'against' is {against!r}; expected 'neighbours' or 'median'")
     lum = luminance(c)
     lead, (h, w) = lum.shape[:-2], lum.shape[-2:]
+    factor = _factor(factor, lead)
     if against == "median":  # the 3 x 3 block's median, border repeated: a cluster of <= 4 pixels is cut too
         near = median9(edge_blocks(lum[..., None], 1, axis=0))[..., 0]
     else:
         pad = jnp.pad(lum, [(0, 0)] * len(lead) + [(1, 1), (1, 1)])
         near = jnp.max(jnp.stack([pad[..., 1 + dy:1 + dy + h, 1 + dx:1 + dx + w]
                                   for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]), axis=0)
-    limit = float(factor) * jnp.maximum(near, float(floor))
+    limit = factor * jnp.maximum(near, float(floor))
     cut = lum > limit  # then lum > 0: the inner where keeps the unused branch's gradient finite at lum = 0
     return c * jnp.where(cut, limit / jnp.where(cut, lum, 1.0), 1.0)[..., None]
+
+
+def _factor(factor, lead: tuple[int, ...]):
+    """`clamp_outliers`' ``factor``: a static number >= 0 as a float, or one per image (an array
+    broadcastable to the leading axes ``lead``) as ``(..., 1, 1)``; a traced array is not checked."""
+    if np.ndim(factor) == 0 and is_concrete(factor):
+        if not np.isfinite(factor) or float(factor) < 0:
+            raise FilterError(f"argument 'factor' is {factor!r}; expected a finite number >= 0")
+        return float(factor)
+    shape = tuple(np.shape(factor))
+    try:
+        np.broadcast_shapes(shape, lead)
+    except ValueError:
+        raise FilterError(f"argument 'factor' has shape {shape}; expected a number or one per image, "
+                          f"broadcastable to the leading axes {lead}") from None
+    if len(shape) > len(lead):
+        raise FilterError(f"argument 'factor' has shape {shape}; expected at most the leading axes {lead}")
+    if is_concrete(factor):
+        v = np.asarray(factor, np.float64)
+        if not np.all(np.isfinite(v) & (v >= 0)):
+            raise FilterError(f"argument 'factor' holds {v[~(np.isfinite(v) & (v >= 0))][:3].tolist()}; "
+                              "expected finite numbers >= 0")
+    return jnp.asarray(factor, jnp.float32)[..., None, None]

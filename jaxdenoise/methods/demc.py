@@ -134,11 +134,14 @@ class Config:
     # with `match_level` > 0 the output's level, averaged by a Gaussian of that many pixels, is put at
     # the noisy input's (`jaxdenoise.filters.match_to_input`: the input with its outliers cut at
     # `match_spike` times their 3x3 median luminance, in the exposure-scaled units), the gain limited
-    # to [1 / `match_max_gain`, `match_max_gain`] (0: no limit); 0: the network's own level.
+    # to [1 / `match_max_gain`, `match_max_gain`] (0: no limit); 0: the network's own level. With
+    # `match_spike_by_rate` the cut scales with the frame's noise: `match_spike` is one sample's factor
+    # and a frame of n spp is cut at 1 + (match_spike - 1) / sqrt(n) (a frame without `spp`: match_spike).
     # Inference only.
     match_level: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})
     match_spike: float = dataclasses.field(default=4.0, metadata={"fine_tune": True})
     match_max_gain: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})  # 0: no limit
+    match_spike_by_rate: bool = dataclasses.field(default=False, metadata={"fine_tune": True})
     train_crop: int = 96
     train_batch: int = 32
 
@@ -178,11 +181,11 @@ def _check(config: Config) -> None:
     if not config.gamma > 0:
         raise JaxdenoiseError(f"demc: config.gamma must be > 0, got {config.gamma}")
     finite = all(np.isfinite(v) for v in (config.match_level, config.match_spike, config.match_max_gain))
-    if not (finite and config.match_level >= 0 and config.match_spike > 0
-            and (config.match_max_gain >= 1 or config.match_max_gain == 0)):
-        raise JaxdenoiseError(f"demc: config.match_level must be finite and >= 0, match_spike finite and > 0, "
-                              f"match_max_gain finite and >= 1 (0: no limit), got {config.match_level}, "
-                              f"{config.match_spike}, {config.match_max_gain}")
+    if not (finite and config.match_level >= 0 and config.match_spike >= (1 if config.match_spike_by_rate else 0)
+            and config.match_spike > 0 and (config.match_max_gain >= 1 or config.match_max_gain == 0)):
+        raise JaxdenoiseError(f"demc: config.match_level must be finite and >= 0, match_spike finite and > 0 "
+                              f"(>= 1 with match_spike_by_rate), match_max_gain finite and >= 1 (0: no limit), "
+                              f"got {config.match_level}, {config.match_spike}, {config.match_max_gain}")
     _check_window(config.exact_window, "config.exact_window")
 
 
@@ -450,12 +453,16 @@ def apply(params: dict, buffers: Buffers, config: Config) -> jax.Array:
 def match_input_level(out: jax.Array, buffers: Any, config: Config) -> jax.Array:
     """``out`` with its level, low-passed by a Gaussian of ``config.match_level`` pixels, put at the
     input colour's (`Config.match_level`): `jaxdenoise.filters.match_to_input` (spike factor
-    ``config.match_spike``, floor `jaxdenoise.color.EXPOSURE_LEVEL`) on output and input in the
-    exposure-scaled units of `inputs`, so ``f(k x) = k f(x)`` still holds. Any leading axes."""
+    ``config.match_spike``, by the frame's ``spp`` with ``match_spike_by_rate``, floor
+    `jaxdenoise.color.EXPOSURE_LEVEL`) on output and input in the exposure-scaled units of `inputs`,
+    so ``f(k x) = k f(x)`` still holds. Any leading axes."""
     scale = exposure_scale(buffers, config)  # (..., 1, 1, 1)
-    color = color_ops.radiance(_getter(buffers)("color")) * scale
+    get = _getter(buffers, optional=True)
+    color = color_ops.radiance(get("color")) * scale
+    spp = get("spp") if config.match_spike_by_rate else None
     return match_to_input(out * scale, color, config.match_level, spike=config.match_spike,
-                          floor=color_ops.EXPOSURE_LEVEL, max_gain=config.match_max_gain or float("inf")) / scale
+                          floor=color_ops.EXPOSURE_LEVEL, max_gain=config.match_max_gain or float("inf"),
+                          spp=spp) / scale
 
 
 def keep_exact_pixels(out: jax.Array, buffers: Any, window: int = 0) -> jax.Array:

@@ -112,11 +112,14 @@ class Config:
     # DEMC's, `jaxdenoise.methods.demc.Config.match_level`): with `match_level` > 0 each output frame's
     # level, low-passed by a Gaussian of that many pixels, is put at its noisy input's
     # (`jaxdenoise.filters.match_to_input`, outliers cut at `match_spike` x their 3x3 median, the gain within
-    # [1 / `match_max_gain`, `match_max_gain`], 0: no limit); needs exposure "frame". The recurrent
+    # [1 / `match_max_gain`, `match_max_gain`], 0: no limit); needs exposure "frame". With
+    # `match_spike_by_rate`, `match_spike` is one sample's factor and a frame of n spp is cut at
+    # 1 + (match_spike - 1) / sqrt(n) (a frame without `spp`: match_spike). The recurrent
     # state is not touched; inference only (training's loss reads the network's own output).
     match_level: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})
     match_spike: float = dataclasses.field(default=4.0, metadata={"fine_tune": True})
     match_max_gain: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})
+    match_spike_by_rate: bool = dataclasses.field(default=False, metadata={"fine_tune": True})
     # The training recipe the weights folder is named after: "" (the default weights) or "paper"
     # (Sec. 5.3: 1-spp fly-throughs, the paper's input; registered as "rae-paper").
     recipe: str = dataclasses.field(default="", metadata={"training": True})
@@ -167,10 +170,12 @@ def _check(config: Config) -> None:
                               f"frame's level sets its floor), got {config.outlier_clamp!r} with {config.exposure!r}")
     finite = all(np.isfinite(v) for v in (config.match_level, config.match_spike, config.match_max_gain))
     if not (finite and config.match_level >= 0 and config.match_spike > 0
+            and config.match_spike >= (1 if config.match_spike_by_rate else 0)
             and (config.match_max_gain >= 1 or config.match_max_gain == 0)) \
             or (config.match_level and config.exposure != "frame"):
         raise JaxdenoiseError(f"rae: config.match_level must be finite and >= 0 (and needs exposure 'frame'), "
-                              f"match_spike finite and > 0, match_max_gain finite and >= 1 (0: no limit), got "
+                              f"match_spike finite and > 0 (>= 1 with match_spike_by_rate), match_max_gain "
+                              f"finite and >= 1 (0: no limit), got "
                               f"{config.match_level}, {config.match_spike}, {config.match_max_gain} with "
                               f"{config.exposure!r}")
     if not config.level_weight >= 0 or int(config.level_pool) < 1 or not config.level_eps > 0:
@@ -414,8 +419,11 @@ def step(params: dict, state: tuple, buffers: Buffers, config: Config) -> tuple[
     out = jnp.maximum(_output(nn.crop_to(y, size), _get(buffers, "albedo"), scale, config), 0.0)
     if config.match_level:
         c = color.radiance(_get(buffers, "color")) * scale
+        spp = (getattr(buffers, "spp", None) if isinstance(buffers, Buffers) else buffers.get("spp")) \
+            if config.match_spike_by_rate else None
         out = match_to_input(out * scale, c, config.match_level, spike=config.match_spike,
-                             floor=color.EXPOSURE_LEVEL, max_gain=config.match_max_gain or float("inf")) / scale
+                             floor=color.EXPOSURE_LEVEL, max_gain=config.match_max_gain or float("inf"),
+                             spp=spp) / scale
     return state, out
 
 
