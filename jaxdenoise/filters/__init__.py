@@ -4,14 +4,15 @@ All filters take and return ``(H, W, C)`` float arrays, accept scalar or per-pix
 parameters, are differentiable in every continuous parameter, keep static sizes (``radius``,
 ``patch_radius``) keyword-only, and never materialize an ``H x W x window^2`` weight tensor.
 See each module's docstring for the exact equations and edge handling. Two helpers that act on a
-network's input or output, `clamp_outliers`, `match_level` and `match_to_input`, take ``(..., H, W, C)`` arrays with any
-leading axes and static scalar parameters instead (no per-pixel maps, no parameter gradients).
+network's input or output, `clamp_outliers`, `match_level` and `match_to_input`, take ``(..., H, W, C)``
+arrays with any leading axes and static scalar parameters instead (no per-pixel maps, no parameter
+gradients); `check_match_settings` refuses a network config's settings for `match_to_input`.
 """
 from ._common import FilterError
 from .bilateral import (DELTA, ZETA, bilateral, cross_bilateral, drop_constant_features,
                         spatiotemporal_cross_bilateral)
 from .gaussian import gaussian, gaussian_kernel_1d
-from .level import match_level, match_to_input
+from .level import check_match_settings, match_level, match_to_input
 from .nlm import cross_nlm, prefilter_features
 from .spikes import clamp_outliers, remove_spikes
 
@@ -20,6 +21,7 @@ __all__ = [
     "FilterError",
     "ZETA",
     "bilateral",
+    "check_match_settings",
     "clamp_outliers",
     "cross_bilateral",
     "cross_nlm",

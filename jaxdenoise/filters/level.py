@@ -3,6 +3,7 @@
 
 ``match_level(image, target, sigma, eps, *, max_gain=inf) -> image``
 ``match_to_input(output, color, sigma, *, spike, floor, max_gain=inf, spp=None) -> image``
+``check_match_settings(owner, sigma, spike, max_gain, by_rate)`` (a network config's settings for it)
 
 Each channel of ``image`` times the gain ``(G(target) + eps) / (G(image) + eps)``, limited to
 ``[1 / max_gain, max_gain]``, where ``G`` is `gaussian` of ``sigma`` pixels (border renormalised) and
@@ -74,6 +75,17 @@ def match_level(image, target, sigma: float, eps: float, *, max_gain: float = fl
     low = jax.vmap(lambda a: jnp.maximum(gaussian(a, float(sigma)), 0.0))
     gain = jnp.clip((low(ts) + float(eps)) / (low(xs) + float(eps)), 1.0 / float(max_gain), float(max_gain))
     return jnp.reshape(xs * gain, shape).astype(out_dtype)
+
+
+def check_match_settings(owner: str, sigma: float, spike: float, max_gain: float, by_rate: bool) -> None:
+    """Refuse, naming ``owner`` (e.g. ``"demc: config."``), a network's level-match settings that
+    `match_to_input` cannot take: ``match_level`` (sigma) finite and >= 0, ``match_spike`` finite and
+    > 0 (>= 1 with ``match_spike_by_rate``), ``match_max_gain`` finite and >= 1 or 0 (no limit)."""
+    finite = all(np.isfinite(v) for v in (sigma, spike, max_gain))
+    if not (finite and sigma >= 0 and (spike >= 1 if by_rate else spike > 0) and (max_gain >= 1 or max_gain == 0)):
+        raise FilterError(f"{owner}match_level must be finite and >= 0, match_spike finite and > 0 (>= 1 with "
+                          f"match_spike_by_rate), match_max_gain finite and >= 1 (0: no limit), got {sigma}, "
+                          f"{spike}, {max_gain}")
 
 
 def match_to_input(output, color, sigma: float, *, spike: float, floor: float,

@@ -55,7 +55,7 @@ from .. import color as color_ops
 from ..color import gamma
 from ..nn.state import call
 from ..errors import JaxdenoiseError
-from ..filters import match_to_input
+from ..filters import check_match_settings, match_to_input
 from ..pipeline import carried_stat, carried_stats
 
 __all__ = ["Config", "needs", "required", "keep_exact_pixels", "exact_pixels", "match_input_level", "init",
@@ -180,12 +180,8 @@ def _check(config: Config) -> None:
         raise JaxdenoiseError(f"demc: config.exposure is {config.exposure!r}; expected one of {EXPOSURES}")
     if not config.gamma > 0:
         raise JaxdenoiseError(f"demc: config.gamma must be > 0, got {config.gamma}")
-    finite = all(np.isfinite(v) for v in (config.match_level, config.match_spike, config.match_max_gain))
-    if not (finite and config.match_level >= 0 and config.match_spike >= (1 if config.match_spike_by_rate else 0)
-            and config.match_spike > 0 and (config.match_max_gain >= 1 or config.match_max_gain == 0)):
-        raise JaxdenoiseError(f"demc: config.match_level must be finite and >= 0, match_spike finite and > 0 "
-                              f"(>= 1 with match_spike_by_rate), match_max_gain finite and >= 1 (0: no limit), "
-                              f"got {config.match_level}, {config.match_spike}, {config.match_max_gain}")
+    check_match_settings("demc: config.", config.match_level, config.match_spike, config.match_max_gain,
+                         config.match_spike_by_rate)
     _check_window(config.exact_window, "config.exact_window")
 
 

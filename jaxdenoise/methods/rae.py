@@ -57,7 +57,7 @@ import numpy as np
 from .. import color, metrics, nn, view
 from ..buffers import SAMPLE_COUNT_FIELD, Buffers
 from ..errors import JaxdenoiseError
-from ..filters import clamp_outliers, match_to_input
+from ..filters import check_match_settings, clamp_outliers, match_to_input
 from ..pipeline import carried_stat, carried_stats
 
 __all__ = ["Config", "needs", "required", "init", "apply", "init_state", "step", "loss", "run_sequence", "inputs",
@@ -168,16 +168,11 @@ def _check(config: Config) -> None:
     if not config.outlier_clamp >= 0 or (config.outlier_clamp and config.exposure != "frame"):
         raise JaxdenoiseError(f"rae: config.outlier_clamp must be >= 0 (0: off) and needs exposure 'frame' (the "
                               f"frame's level sets its floor), got {config.outlier_clamp!r} with {config.exposure!r}")
-    finite = all(np.isfinite(v) for v in (config.match_level, config.match_spike, config.match_max_gain))
-    if not (finite and config.match_level >= 0 and config.match_spike > 0
-            and config.match_spike >= (1 if config.match_spike_by_rate else 0)
-            and (config.match_max_gain >= 1 or config.match_max_gain == 0)) \
-            or (config.match_level and config.exposure != "frame"):
-        raise JaxdenoiseError(f"rae: config.match_level must be finite and >= 0 (and needs exposure 'frame'), "
-                              f"match_spike finite and > 0 (>= 1 with match_spike_by_rate), match_max_gain "
-                              f"finite and >= 1 (0: no limit), got "
-                              f"{config.match_level}, {config.match_spike}, {config.match_max_gain} with "
-                              f"{config.exposure!r}")
+    check_match_settings("rae: config.", config.match_level, config.match_spike, config.match_max_gain,
+                         config.match_spike_by_rate)
+    if config.match_level and config.exposure != "frame":
+        raise JaxdenoiseError(f"rae: config.match_level needs exposure 'frame' (the frame's level sets the cut's "
+                              f"floor), got match_level {config.match_level} with {config.exposure!r}")
     if not config.level_weight >= 0 or int(config.level_pool) < 1 or not config.level_eps > 0:
         raise JaxdenoiseError(f"rae: config.level_weight must be >= 0, config.level_pool >= 1 and config.level_eps "
                               f"> 0, got {config.level_weight!r}, {config.level_pool!r} and {config.level_eps!r}")

@@ -480,7 +480,8 @@ FILTERS: dict[str, FilterSpec] = {
         grad_field="albedo"),
 }
 # Public names of jaxdenoise.filters that are not image filters (helpers and the error type).
-FILTER_HELPERS = frozenset({"FilterError", "gaussian_kernel_1d", "drop_constant_features", "DELTA", "ZETA"})
+FILTER_HELPERS = frozenset({"FilterError", "gaussian_kernel_1d", "drop_constant_features", "DELTA", "ZETA",
+                            "check_match_settings"})
 
 
 def public_filters() -> list[str]:
