@@ -6,7 +6,9 @@ after a warm-up; GFLOP from XLA's cost analysis of the compiled program).
 
 For each method: its shipped parameters, a synthetic 1280x720 frame with every buffer it needs, the
 jitted ``apply`` (what `jaxdenoise.load` runs), in float32 and with its stated variants. Run on a
-quiet machine; the load average before and after is recorded.
+quiet machine; the load average before and after is recorded. The allocator keeps freed memory
+(`jaxdenoise.runtime.keep_memory`, as the CLI and bench; ``JAXDENOISE_KEEP_MEMORY=off`` measures
+without) and the JSON says which (``allocator``).
 """
 from __future__ import annotations
 
@@ -23,6 +25,7 @@ import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
 from bench_conv import matmul, oidn, timed  # noqa: E402
+from jaxdenoise import runtime  # noqa: E402
 from jaxdenoise.api import resolve  # noqa: E402
 from jaxdenoise.inference import prepare  # noqa: E402
 from jaxdenoise.buffers import CHANNELS, Buffers  # noqa: E402
@@ -53,9 +56,12 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=7)
     ap.add_argument("--out", default="docs/results/network_speed.json")
     args = ap.parse_args()
+    # the library's fast path, as the CLI and bench run it (JAXDENOISE_KEEP_MEMORY=off: without)
+    runtime.keep_memory(respect_env=True)
     w, h = (int(v) for v in args.size.split("x"))
-    res = {"size": [w, h], "runs": args.runs, "note": "causal methods: one `step` (state carried in and out)", "load_before": os.getloadavg(), "jax": jax.__version__,
-           "cpus": os.cpu_count(), "methods": {}}
+    res = {"size": [w, h], "runs": args.runs, "note": "causal methods: one `step` (state carried in and out)",
+           "load_before": os.getloadavg(), "jax": jax.__version__, "cpus": os.cpu_count(),
+           "allocator": runtime.status(), "methods": {}}
     res["matmul_2048"] = matmul(2048, args.runs)
     res["oidn"] = oidn(h, w, args.runs)
     for name in args.methods.split(","):

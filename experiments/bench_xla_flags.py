@@ -1,17 +1,19 @@
 """The speed levers of issue 36, measured in one run: XLA:CPU's flags (oneDNN, XNNPACK, fast math,
-vector width) and the kernel-gradient implementation of `jaxdenoise.nn.conv`, on the forward pass
-and the training step of every registered network, each beside OIDN, a float32 matmul and today's
-path.
+vector width), the kernel-gradient implementation of `jaxdenoise.nn.conv` and glibc's allocator told
+to keep freed memory (`jaxdenoise.runtime.keep_memory`), on the forward pass and the training step of
+every registered network, each beside OIDN, a float32 matmul and today's path.
 
     JAX_PLATFORMS=cpu python experiments/bench_xla_flags.py --data DATA --out docs/results/xla_flags
 
 ``DATA`` is a data_gen folder with fly-throughs and gradients (the trainer's input for all three
-networks), e.g. ``python -m data_gen dataset --family rooms --count 2 --frames 7 --spp 4 --ref-spp 64
+networks), e.g. ``python -m data_gen dataset --family rooms --count 2 --frames 7 --spp 4,64 --ref-spp 64 --primal gpt
 --methods demc,rae,gradnet --out DATA``.
 
 XLA flags are read once per process, so each configuration (`CONFIGS`) runs in a child process of
-its own (``XLA_FLAGS``, the compile cache off), one after another; nothing else should run. A child
-measures, with `common.timed` (compile apart, a warm-up, then the median of ``--runs``):
+its own (``XLA_FLAGS``, the compile cache off; `keep_memory` called before JAX starts), one after
+another; nothing else should run. A child measures, with `common.timed` (compile apart, a warm-up,
+then the median of ``--runs``; page faults and kernel time per call beside the time), and its peak
+resident memory:
 
 - peers: a float32 matmul (2048^3) and OIDN (`high`, colour + albedo + normal) at 1280x720;
 - the forward pass of each network's shipped weights at 1280x720 on a synthetic frame with every
@@ -33,6 +35,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import subprocess
 import sys
 import tempfile
@@ -49,17 +52,20 @@ import numpy as np  # noqa: E402
 from common import all_measured, num, write_study  # noqa: E402
 
 NETWORKS = ("demc", "rae", "gradnet")
-# name -> (XLA_FLAGS, nn.conv.WEIGHT_GRADIENT); "today" is the path before this study (XLA's defaults)
+# name -> (XLA_FLAGS, nn.conv.WEIGHT_GRADIENT, jaxdenoise.runtime.keep_memory called first); "today" is the
+# path before this study (XLA's defaults)
 CONFIGS = {
-    "today": ("", "xla"),
-    "fast kernel gradient": ("", "fast"),
-    "oneDNN": ("--xla_cpu_use_onednn=true", "fast"),
-    "oneDNN custom calls": ("--xla_cpu_use_onednn=true --xla_cpu_experimental_onednn_custom_call=true", "fast"),
-    "oneDNN fusions": ("--xla_cpu_use_onednn=true --xla_cpu_experimental_onednn_fusion_type=dot,eltwise", "fast"),
-    "XNNPACK off": ("--xla_cpu_use_xnnpack=false", "fast"),
-    "XNNPACK fusions": ("--xla_cpu_experimental_xnn_fusion_type=dot,eltwise,reduce", "fast"),
-    "512-bit vectors": ("--xla_cpu_prefer_vector_width=512", "fast"),
-    "fast math": ("--xla_cpu_enable_fast_math=true", "fast"),
+    "today": ("", "xla", False),
+    "fast kernel gradient": ("", "fast", False),
+    "oneDNN": ("--xla_cpu_use_onednn=true", "fast", False),
+    "oneDNN custom calls": ("--xla_cpu_use_onednn=true --xla_cpu_experimental_onednn_custom_call=true", "fast", False),
+    "oneDNN fusions": ("--xla_cpu_use_onednn=true --xla_cpu_experimental_onednn_fusion_type=dot,eltwise", "fast", False),
+    "XNNPACK off": ("--xla_cpu_use_xnnpack=false", "fast", False),
+    "XNNPACK fusions": ("--xla_cpu_experimental_xnn_fusion_type=dot,eltwise,reduce", "fast", False),
+    "512-bit vectors": ("--xla_cpu_prefer_vector_width=512", "fast", False),
+    "fast math": ("--xla_cpu_enable_fast_math=true", "fast", False),
+    "memory kept": ("", "fast", True),
+    "memory kept + XNNPACK fusions": ("--xla_cpu_experimental_xnn_fusion_type=dot,eltwise,reduce", "fast", True),
 }
 
 
@@ -80,14 +86,15 @@ def child(args) -> None:
     from bench_conv import matmul, oidn
     from bench_network_speed import frame
     from common import timed
-    from jaxdenoise import nn, train
+    from jaxdenoise import nn, runtime, train
     from jaxdenoise.api import resolve
     from jaxdenoise.fsutil import write_json
     from jaxdenoise.inference import prepare
 
     nn.conv.WEIGHT_GRADIENT = args.grad
     w, h = (int(v) for v in args.size.split("x"))
-    res = {"xla_flags": os.environ.get("XLA_FLAGS", ""), "weight_gradient": args.grad, "load_before": os.getloadavg()[0],
+    res = {"xla_flags": os.environ.get("XLA_FLAGS", ""), "weight_gradient": args.grad,
+           "keep_memory": runtime.status()["kept"] is True, "load_before": os.getloadavg()[0],
            "matmul_2048": matmul(2048, args.runs), "oidn": oidn(h, w, args.runs), "forward": {}, "train": {}}
     exact = {}
     exr, real = _frame(Path(args.data))
@@ -139,6 +146,7 @@ def child(args) -> None:
               f"({crops / med:.1f} crops/s)", flush=True)
     res["frame"] = str(exr.relative_to(Path(args.data)))
     res["load_after"] = os.getloadavg()[0]
+    res["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux: KiB
     np.savez(args.arrays, **exact)
     write_json(Path(args.result), res)
 
@@ -158,10 +166,16 @@ def main() -> None:
     ap.add_argument("--configs", default=",".join(CONFIGS), help="comma list of CONFIGS names")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--grad", default="fast", help=argparse.SUPPRESS)
+    ap.add_argument("--keep-memory", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--arrays", help=argparse.SUPPRESS)
     ap.add_argument("--result", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
+        if args.keep_memory:  # before JAX starts its threads (see jaxdenoise.runtime)
+            from jaxdenoise import runtime
+
+            if not runtime.keep_memory():
+                raise SystemExit(f"keep_memory: {runtime.status()['why']}")
         return child(args)
     names = [n.strip() for n in args.configs.split(",")]
     unknown = [n for n in names if n not in CONFIGS]
@@ -175,16 +189,17 @@ def main() -> None:
     arrays = {}
     with tempfile.TemporaryDirectory() as tmp:
         for name in names:
-            flags, grad = CONFIGS[name]
-            print(f"{name}: XLA_FLAGS='{flags}', kernel gradient {grad}", flush=True)
+            flags, grad, keep = CONFIGS[name]
+            print(f"{name}: XLA_FLAGS='{flags}', kernel gradient {grad}, memory kept {keep}", flush=True)
             env = {**os.environ, "XLA_FLAGS": flags, "JAXDENOISE_CACHE_DIR": "off", "JAX_PLATFORMS": "cpu"}
             a, r = Path(tmp) / f"{len(arrays)}.npz", Path(tmp) / f"{len(arrays)}.json"
             done = subprocess.run([sys.executable, __file__, "--child", "--data", args.data, "--size", args.size,
-                                   "--runs", str(args.runs), "--grad", grad, "--arrays", str(a), "--result", str(r)],
+                                   "--runs", str(args.runs), "--grad", grad, "--arrays", str(a), "--result", str(r)]
+                                  + (["--keep-memory"] if keep else []),
                                   env=env, stderr=subprocess.PIPE, text=True)
             if done.returncode != 0:  # a configuration that crashes XLA is a result, not the end of the sweep
                 tail = [ln for ln in done.stderr.splitlines() if ln.strip() and "Warning" not in ln][-3:]
-                res["configs"][name] = {"xla_flags": flags, "weight_gradient": grad,
+                res["configs"][name] = {"xla_flags": flags, "weight_gradient": grad, "keep_memory": keep,
                                         "error": f"exit status {done.returncode}: " + " / ".join(tail)}
                 print(f"  failed: {res['configs'][name]['error']}", flush=True)
                 continue
@@ -240,11 +255,27 @@ def page(res: dict) -> str:
         worst = max(v for k, v in c["max_rel_diff"].items() if k.endswith("/forward"))
         lines.append(f"| {name} | " + " | ".join(cells) + f" | {o * 1e3:.0f} | {c['matmul_2048']['gflops']:.0f} | "
                      f"{num(worst, '.1e')} |")
+    if all("peak_rss_mb" in c for c in ok.values()):  # runs since the allocator study (jaxdenoise.runtime)
+        lines += ["", "## Page faults and memory", "",
+                  "Per call, medians: page faults and the process's CPU time spent in the kernel (`sys s`); "
+                  "the child's peak resident memory over all its work.", "",
+                  "| configuration | " + " | ".join(f"{n} forward faults | {n} forward sys s | {n} train faults"
+                                                   for n in NETWORKS) + " | peak RSS MB |",
+                  "|---|" + "---:|" * (3 * len(NETWORKS) + 1)]
+        for name, c in ok.items():
+            cells = []
+            for n in NETWORKS:
+                steps = c["train"][n]["steps"]
+                cells += [f"{c['forward'][n]['median_faults']:.0f}", f"{c['forward'][n]['median_sys_s']:.2f}",
+                          f"{np.mean([s['median_faults'] for s in steps]):.0f}"]
+            lines.append(f"| {name} | " + " | ".join(cells) + f" | {c['peak_rss_mb']:.0f} |")
     lines += ["", "## Configurations", ""]
     for name, c in cfg.items():
         state = (f"**failed**: {c['error']}" if "error" in c else
                  f"load {c['load_before']:.2f} before, {c['load_after']:.2f} after")
-        lines.append(f"- **{name}**: `XLA_FLAGS='{c['xla_flags']}'`, kernel gradient `{c['weight_gradient']}`; {state}.")
+        kept = "; memory kept (`jaxdenoise.runtime.keep_memory`)" if c.get("keep_memory") else ""
+        lines.append(f"- **{name}**: `XLA_FLAGS='{c['xla_flags']}'`, kernel gradient `{c['weight_gradient']}`{kept}; "
+                     f"{state}.")
     lines += ["", "Diffs: the largest `max |a - b| / max |b|` against `today` over the networks' outputs on the real "
               f"frame `{today['frame']}` (forward) and over every parameter's loss gradient on the first training "
               "batch (grad).", "", "## Run", "",

@@ -20,8 +20,11 @@ __all__ = ["tar_folders", "timed", "unet"]
 def timed(fn: Callable, *args: Any, runs: int) -> tuple[Any, dict]:
     """``(output, stats)`` of ``jax.jit(fn)(*args)``: compiled ahead of time (``compile_s``), one
     warm-up, then ``runs`` timed calls (``median_s``, ``runs_s`` wall; ``median_cpu_s``, ``cpu_s``
-    process CPU time), with XLA's cost analysis (``gflop``, ``gflops`` at the median) and its
-    temporary memory (``temp_bytes``)."""
+    process CPU time; ``median_sys_s`` its part spent in the kernel, ``median_faults`` the page faults
+    per call), with XLA's cost analysis (``gflop``, ``gflops`` at the median) and its temporary memory
+    (``temp_bytes``)."""
+    import resource
+
     import jax
 
     t0 = time.perf_counter()
@@ -32,15 +35,19 @@ def timed(fn: Callable, *args: Any, runs: int) -> tuple[Any, dict]:
     flops = float(cost.get("flops", float("nan"))) if cost else float("nan")
     ma = compiled.memory_analysis()
     out = jax.block_until_ready(compiled(*args))  # warm-up
-    ts, cpu = [], []
+    ts, cpu, sys_s, faults = [], [], [], []
     for _ in range(runs):
-        t0, c0 = time.perf_counter(), time.process_time()
+        r0, t0, c0 = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter(), time.process_time()
         out = jax.block_until_ready(compiled(*args))
         ts.append(time.perf_counter() - t0)
         cpu.append(time.process_time() - c0)
+        r1 = resource.getrusage(resource.RUSAGE_SELF)
+        sys_s.append(r1.ru_stime - r0.ru_stime)
+        faults.append(r1.ru_minflt + r1.ru_majflt - r0.ru_minflt - r0.ru_majflt)
     med = statistics.median(ts)
     return out, {"median_s": med, "runs_s": ts, "compile_s": compile_s, "median_cpu_s": statistics.median(cpu),
-                 "cpu_s": cpu, "gflop": flops / 1e9, "gflops": flops / 1e9 / med,
+                 "cpu_s": cpu, "median_sys_s": statistics.median(sys_s), "median_faults": statistics.median(faults),
+                 "gflop": flops / 1e9, "gflops": flops / 1e9 / med,
                  "temp_bytes": int(ma.temp_size_in_bytes) if ma else None}
 
 

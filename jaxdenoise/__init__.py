@@ -9,7 +9,9 @@ Public API::
     video = jd.denoise_sequence(frames, method="lbf") # a sequence (recurrent / windowed / per frame)
     jd.method_names()                                # registered method names
     jd.write_image("out.exr", image); jd.write_display("out.png", image, exposure=0)  # linear / sRGB
+    jd.runtime.keep_memory()                         # opt-in: the CLI's faster allocator setting (glibc)
 """
+from . import runtime
 from .api import denoise, denoise_sequence, load
 from .buffers import Buffers, BuffersError, stack
 from .errors import JaxdenoiseError, JaxdenoiseWarning
@@ -31,10 +33,10 @@ def __getattr__(name: str):
 
 # The one version number (pyproject.toml reads it): bumped whenever outputs change (a method's
 # result, a file format, a weight), each bump listed in CHANGELOG.md.
-__version__ = "0.9.13"
+__version__ = "0.9.14"
 
 __all__ = [
     "Buffers", "BuffersError", "ExrError", "JaxdenoiseError", "JaxdenoiseWarning", "MethodError", "denoise", "denoise_sequence", "load", "method_names",
     "buffers_from_channels", "read_buffers", "read_image", "read_sequence", "stack", "write_buffers", "write_image", "write_display",
-    "__version__",
+    "runtime", "__version__",
 ]

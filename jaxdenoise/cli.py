@@ -14,6 +14,7 @@ from importlib.metadata import entry_points
 from pathlib import Path
 
 from .errors import JaxdenoiseError
+from .runtime import keep_memory
 from .buffers import PRIMALS
 
 
@@ -334,6 +335,7 @@ def main(argv: list[str] | None = None) -> int:
 
     parser = build_parser()
     args = parser.parse_args(argv)
+    keep_memory(respect_env=True)  # before anything compiles (jaxdenoise.runtime)
     if not args.debug:
         warnings.showwarning = _show_warning
     try:
