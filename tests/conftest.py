@@ -12,6 +12,10 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 _RUN = os.environ.get("PYTEST_XDIST_TESTRUNUID") or f"pid{os.getpid()}"
 _CACHE = os.path.join(__import__("tempfile").gettempdir(), f"jaxdenoise-test-xla-{_RUN}")
 os.environ["JAXDENOISE_CACHE_DIR"] = _CACHE
+# The CLI and bench tell glibc to keep freed memory (jaxdenoise.runtime); a test worker runs hundreds
+# of programs and would hold its largest heap for the rest of the run. Tests run with the system
+# allocator (values do not depend on it: tests/test_runtime.py), except where they ask for it.
+os.environ.setdefault("JAXDENOISE_KEEP_MEMORY", "off")
 
 import numpy as np
 import pytest

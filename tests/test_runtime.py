@@ -45,6 +45,7 @@ print(json.dumps({"kept": kept, "status": runtime.status(), "faults": faults[1:]
 
 
 def _run(mode: str, env: dict | None = None) -> dict:
+    env = {"JAXDENOISE_KEEP_MEMORY": "on", **(env or {})}  # conftest turns it off for the test processes
     # XLA's default optimisation level, as users run it (the default test run's -O0, conftest.py, emits
     # code whose temporaries are not the allocator's to keep)
     done = subprocess.run([sys.executable, "-c", SCRIPT, mode], capture_output=True, text=True, timeout=300,
@@ -74,3 +75,15 @@ def test_keep_memory_is_left_out_where_asked_or_impossible():
     other = _run("not-glibc")
     assert other["kept"] is False and "'musl' is not glibc" in other["status"]["why"]
     assert other["released"] is False  # nothing to call on that C library
+
+
+def test_the_command_line_keeps_memory_unless_told_not_to():
+    """Every CLI verb makes the call before it runs (here `methods`); $JAXDENOISE_KEEP_MEMORY=off leaves
+    the allocator alone."""
+    code = ("import json; from jaxdenoise import cli, runtime; cli.main(['methods']); "
+            "print(json.dumps(runtime.status()))")
+    for value, kept in (("on", platform.libc_ver()[0] == "glibc"), ("off", False)):
+        done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                              env={**os.environ, "JAX_PLATFORMS": "cpu", "JAXDENOISE_KEEP_MEMORY": value})
+        assert done.returncode == 0, done.stderr[-2000:]
+        assert json.loads(done.stdout.strip().splitlines()[-1])["kept"] is kept, (value, done.stdout[-500:])
