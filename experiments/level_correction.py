@@ -194,8 +194,11 @@ def choice_page(res: dict) -> str:
         lines.append(f"| {k} | " + " | ".join("/".join(num(x, ".3f") for x in v["level"][c]) for c in cols)
                      + f" | {'yes' if v['level_ok'] else 'no'} | {num(v['geomean'], '.5f')} | "
                      f"{num(v['geomean'] / off, '.3f')} |")
-    lines += ["", f"Chosen: `{res['chosen']['level']}` (the lowest geometric mean among the settings within the "
-              "tolerance at every folder and rate).", "", "Command: `" + res["command"] + "`", ""]
+    if any(v["level_ok"] for v in res["levels"].values()):
+        why = "the lowest geometric mean among the settings within the tolerance at every folder and rate"
+    else:
+        why = "no setting is within the tolerance at every folder and rate: the rule falls back to no match"
+    lines += ["", f"Chosen: `{res['chosen']['level']}` ({why}).", "", "Command: `" + res["command"] + "`", ""]
     return "\n".join(lines)
 
 

@@ -1013,6 +1013,7 @@ STUDIES: dict[str, tuple[str, str]] = {
     "rae_rates/level_term/demc_levels.md": ("demc_levels", "rae_rates/level_term/demc_levels.json"),
     "level_correction/level_correction.md": ("level_correction", "level_correction/level_correction.json"),
     "level_correction/choice.md": ("level_correction", "level_correction/choice.json"),
+    "level_correction_val4/choice.md": ("level_correction", "level_correction_val4/choice.json"),
 }
 
 # Pages written by hand that state no measured number of their own (they point to the pages above).
