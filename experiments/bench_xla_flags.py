@@ -66,6 +66,8 @@ CONFIGS = {
     "fast math": ("--xla_cpu_enable_fast_math=true", "fast", False),
     "memory kept": ("", "fast", True),
     "memory kept + XNNPACK fusions": ("--xla_cpu_experimental_xnn_fusion_type=dot,eltwise,reduce", "fast", True),
+    "memory kept + XNNPACK convolutions": ("--xla_cpu_experimental_xnn_fusion_type=individual_convolution", "fast",
+                                           True),
 }
 
 

@@ -970,6 +970,7 @@ STUDIES: dict[str, tuple[str, str]] = {
     "conv.md": ("bench_conv", "conv.json"),
     "xla_flags/xla_flags.md": ("bench_xla_flags", "xla_flags/xla_flags.json"),
     "memory_reuse/xla_flags.md": ("bench_xla_flags", "memory_reuse/xla_flags.json"),
+    "xnn_convolutions/xla_flags.md": ("bench_xla_flags", "xnn_convolutions/xla_flags.json"),
     "gradnet_profile/gradnet_profile.md": ("profile_gradnet", "gradnet_profile/gradnet_profile.json"),
     "network_memory/network_memory.md": ("network_memory", "network_memory/network_memory.json"),
     "first_call/first_call.md": ("first_call", "first_call/first_call.json"),
