@@ -9,9 +9,9 @@ afterwards. glibc's ``malloc`` serves blocks above its mmap threshold (at most 3
 activation of 32 float32 channels is 118 MB) with a fresh ``mmap`` and returns them with ``munmap``,
 and trims the top of its heap back to the system when it is freed; so every call touches its
 activations' pages for the first time again, and the kernel zero-fills each one. On this project's
-2-core machine a `demc` forward pass at 1280x720 took about 200 000 page faults and 0.3 s of kernel
-time per call (of about 0.9 s), a training step of `demc` 350 000 faults
-(docs/results/memory_reuse/xla_flags.md measures it).
+2-core machine a `demc` forward pass at 1280x720 took about 200 000 page faults and 0.3-0.5 s of
+kernel time per call (of 0.9-2.3 s, as fast as the machine ran), a training step of `demc` 350 000
+faults (docs/results/memory_reuse/xla_flags.md and docs/training.md "Speed on this CPU" measure it).
 
 **What.** Three ``mallopt`` settings (glibc's own tunables, also reachable as the ``MALLOC_*``
 environment variables when set before a process starts): no block is served by ``mmap``
