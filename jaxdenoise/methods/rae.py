@@ -277,7 +277,10 @@ def _forward(params: dict, x: jax.Array, hidden: tuple, config: Config) -> tuple
 
 # -- inputs ----------------------------------------------------------------------------------------
 
-def _get(b, f):
+def _get(b, f, optional: bool = False):
+    """Field ``f`` of a `Buffers` or a dict frame; ``optional``: None where the frame lacks it."""
+    if optional:
+        return getattr(b, f, None) if isinstance(b, Buffers) else b.get(f)
     return getattr(b, f) if isinstance(b, Buffers) else b[f]
 
 
@@ -414,8 +417,7 @@ def step(params: dict, state: tuple, buffers: Buffers, config: Config) -> tuple[
     out = jnp.maximum(_output(nn.crop_to(y, size), _get(buffers, "albedo"), scale, config), 0.0)
     if config.match_level:
         c = color.radiance(_get(buffers, "color")) * scale
-        spp = (getattr(buffers, "spp", None) if isinstance(buffers, Buffers) else buffers.get("spp")) \
-            if config.match_spike_by_rate else None
+        spp = _get(buffers, "spp", optional=True) if config.match_spike_by_rate else None
         out = match_to_input(out * scale, c, config.match_level, spike=config.match_spike,
                              floor=color.EXPOSURE_LEVEL, max_gain=config.match_max_gain or float("inf"),
                              spp=spp) / scale
