@@ -50,6 +50,17 @@ surviving outlier brightened 1.3x, docs/methods/rae.md.) Written to ``OUT/level_
 
     python experiments/rae_rates.py match --init jaxdenoise/weights/rae --out docs/results/rae_rates
 
+``exact`` chooses whether and how `rae` keeps exact pixels (`jaxdenoise.methods.rae.Config.keep_exact`,
+``exact_window``; docs/methods/rae.md "Exact pixels") for the weights and settings in ``--init``, no
+training: off, the variance rule alone (window 0) and each window of ``--windows``, scored on the
+validation fly-throughs (``--val-data``, state carried) and the validation single frames of
+``--exact-data`` together: the geometric mean of every frame's RelMSE. The rule: the setting with the
+lowest geometric mean; off unless that beats off's. Each setting's kept pixels are counted per folder,
+and those that are not exact (a channel more than 5 % from the reference's). Written to
+``OUT/exact_pixels.json``:
+
+    python experiments/rae_rates.py exact --init jaxdenoise/weights/rae --out docs/results/rae_rates
+
 Every training run's record goes to ``OUT/summary.json``.
 """
 from __future__ import annotations
@@ -193,9 +204,51 @@ def choose_match(args) -> dict:
     return res
 
 
+def choose_exact(args) -> dict:
+    """The ``exact`` subcommand (module docstring): the validation RelMSE of each exact-pixel setting of
+    the weights in ``--init`` and the pixels it keeps, then the rule."""
+    from jaxdenoise.api import resolve
+    from jaxdenoise.filters import exact_mask
+    from jaxdenoise.train import load_validation, validate
+
+    base, params = resolve("rae", args.init)
+    reader = base.with_config(keep_exact=True)  # reads color_var where a frame has it
+    folders = [args.val_data] + [d for d in args.exact_data.split(",") if d.strip()]
+    frames = {d: load_validation(reader, d) for d in folders}
+    settings = {"off": {"keep_exact": False, "exact_window": 0}, "variance": {"keep_exact": True, "exact_window": 0}}
+    settings |= {f"w{w}": {"keep_exact": True, "exact_window": int(w)} for w in args.windows.split(",")}
+    res = {"init": args.init, "folders": folders, "settings": {}}
+    for label, over in settings.items():
+        m = base.with_config(**over)
+        per = {d: validate(m, params, fr) for d, fr in frames.items()}
+        every = validate(m, params, [f for fr in frames.values() for f in fr])
+        kept = {}
+        for d, fr in frames.items():
+            k = wrong = 0
+            for f in fr:
+                pairs = zip(f["frames"], f["references"]) if "frames" in f else [(f["buffers"], f["reference"])]
+                for b, ref in pairs:
+                    if not over["keep_exact"]:
+                        continue
+                    mask = np.asarray(exact_mask(b.color, b.color_var, b.spp, window=over["exact_window"]))[..., 0]
+                    c, r = np.asarray(b.color, np.float64)[mask], np.asarray(ref, np.float64)[mask]
+                    k += int(mask.sum())
+                    wrong += int(np.sum(np.any(np.abs(c - r) > 0.05 * np.abs(r) + 1e-6, axis=-1)))
+            kept[d] = {"kept": k, "not_exact": wrong}
+        res["settings"][label] = {"config": over, "relmse_geomean": every["relmse_geomean"],
+                                  "folders": {d: {x: v[x] for x in ("relmse", "relmse_geomean", "per_spp")} | kept[d]
+                                              for d, v in per.items()}}
+        print(label, every["relmse_geomean"], {d: (v["relmse_geomean"], kept[d]) for d, v in per.items()}, flush=True)
+    best = min(res["settings"], key=lambda k: res["settings"][k]["relmse_geomean"])
+    beats = res["settings"][best]["relmse_geomean"] < res["settings"]["off"]["relmse_geomean"]
+    res["chosen"] = best if beats else "off"
+    res["command"] = " ".join(["python", "experiments/rae_rates.py", *sys.argv[1:]])
+    return res
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("what", choices=("arms", "continue", "level", "clamp", "match"))
+    ap.add_argument("what", choices=("arms", "continue", "level", "clamp", "match", "exact"))
     ap.add_argument("--data", default="runs/rae_rates_data")
     ap.add_argument("--val-data", default="data/rae_library_val")
     ap.add_argument("--out", required=True)
@@ -222,8 +275,16 @@ def main() -> None:
                     help="match: the largest validation geometric mean a chosen setting may have, times off's")
     ap.add_argument("--rate-tolerance", type=float, default=1.10,
                     help="match: the largest validation RelMSE at any one rate a chosen setting may have, times off's")
+    ap.add_argument("--windows", default="3,5,7", help="exact: the window rule's squares to score")
+    ap.add_argument("--exact-data", default="data/procedural_val,data/library_val,data/library_val2",
+                    help="exact: validation folders of single frames scored beside the fly-throughs")
     args = ap.parse_args()
     out = Path(args.out)
+    if args.what == "exact":
+        res = choose_exact(args)
+        write_json(out / "exact_pixels.json", res)
+        print("chosen:", res["chosen"])
+        return
     if args.what == "match":
         res = choose_match(args)
         write_json(out / "level_match.json", res)

@@ -365,6 +365,25 @@ def _rae_level_match(results: Path) -> str:
             f"validation `{d['val_data']}`. Command: `{d['command']}`.")
 
 
+@renderer("rae-exact-pixels")
+def _rae_exact_pixels(results: Path) -> str:
+    """Exact pixels kept or not, measured on the validation fly-throughs and single frames
+    (experiments/rae_rates.py exact)."""
+    d = load(results, "rae_rates/exact_pixels.json")
+    rows = []
+    for k, r in d["settings"].items():
+        cells = [f"{num(f['relmse_geomean'], '.4g')} ({f['kept']:,} kept, {f['not_exact']} not exact)"
+                 for f in (r["folders"][x] for x in d["folders"])]
+        rows.append([("**" + k + "**" if k == d["chosen"] else k), num(r["relmse_geomean"], ".4g"), *cells])
+    return (table(["setting", "geometric mean, every frame", *(f"`{x}`" for x in d["folders"])], rows,
+                  "lr" + "r" * len(d["folders"]))
+            + "\n\nSettings: off; the variance rule alone (`keep_exact`, window 0); the variance rule and the "
+            "window rule with an N x N square (wN). Each folder: the geometric mean of its frames' RelMSE (the "
+            "fly-throughs with the state carried), the pixels kept over its frames, and those kept whose input "
+            "differs from the reference by more than 5 % in a channel. Chosen (bold): the lowest geometric mean over "
+            f"every frame; off unless that beats off's. Weights `{d['init']}`. Command: `{d['command']}`.")
+
+
 @renderer("rae-input-arms")
 def _rae_input_arms(results: Path) -> str:
     """Issue 34's input transforms at an equal budget: the validation curve of each arm."""

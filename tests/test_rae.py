@@ -42,7 +42,7 @@ def _frame(h, w, seed=0, camera=None):
 def test_needs_and_the_paper_network():
     paper = get("rae-paper")
     assert paper.needs() == {"color", "albedo", "normal", "position", "roughness", "world_to_camera"}
-    assert get("rae").needs() == paper.needs() | {"spp"}  # the rate channel (issue 34)
+    assert get("rae").needs() == paper.needs() | {"spp", "color_var"}  # the rate channel, exact pixels (issue 34)
     assert get("rae").temporal == "causal" and paper.temporal == "causal"
     p = rae.init(jax.random.PRNGKey(0), paper.config)
     kernels = [x for x in jax.tree_util.tree_leaves(p) if x.ndim == 4]
@@ -327,6 +327,40 @@ def test_level_match_setting():
     with pytest.raises(ValueError, match="match_spike_by_rate"):
         rae.num_params(dataclasses.replace(on, match_spike=0.5, match_spike_by_rate=True))
     assert get("rae").config.match_level == 8.0 and get("rae-paper").config.match_level == 0.0
+
+
+def test_keep_exact_pixels():
+    """``keep_exact`` (`jaxdenoise.filters.exact_mask`): at >= 2 spp a lit pixel whose colour variance is
+    0 keeps its input, before and after the level match; at 1 spp the window rule keeps a uniform 3x3
+    block's centre; every other pixel and the state are as without it; `needs` reads color_var,
+    `required` does not."""
+    cfg = rae.Config(widths=(4, 4, 6, 6, 8), bottleneck=8, exposure="frame", match_level=4.0, match_max_gain=1.2)
+    on = dataclasses.replace(cfg, keep_exact=True, exact_window=3)
+    assert "color_var" in rae.needs(on) and "color_var" not in rae.required(on) | rae.needs(cfg)
+    p = rae.init(jax.random.PRNGKey(1), cfg)
+    fr = _frame(16, 12, seed=3)
+    color = np.asarray(fr.color).copy()
+    color[4:7, 5:8] = [5.0, 4.0, 3.0]  # a uniform light: its centre (5, 6) agrees with its 3x3 square
+    var = np.full_like(color, 0.1)
+    var[10, 2] = 0.0  # samples that all agreed
+    s0 = rae.init_state(fr, cfg)
+    for spp, kept in ((4, (10, 2)), (1, (5, 6))):
+        b = fr.replace(color=color, color_var=var, spp=spp)
+        state_off, off = rae.step(p, s0, b, cfg)
+        state_on, out = rae.step(p, s0, b, on)
+        out, off = np.asarray(out), np.asarray(off)
+        np.testing.assert_array_equal(out[kept], color[kept])
+        assert not np.allclose(off[kept], color[kept])
+        for a, c in zip(state_off, state_on):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(c))
+        plain = dataclasses.replace(cfg, match_level=0.0)  # without the match: only the kept pixel changes
+        a = np.array(rae.step(p, s0, b, plain)[1])
+        z = np.asarray(rae.step(p, s0, b, dataclasses.replace(plain, keep_exact=True, exact_window=3))[1])
+        a[kept] = color[kept]
+        np.testing.assert_array_equal(z, a)
+    with pytest.raises(ValueError, match="exact_window"):
+        rae.num_params(dataclasses.replace(on, exact_window=4))
+    assert get("rae").config.keep_exact and not get("rae-paper").config.keep_exact
 
 
 def test_rate_channel_and_linear_input():

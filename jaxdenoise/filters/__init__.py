@@ -7,10 +7,13 @@ See each module's docstring for the exact equations and edge handling. Two helpe
 network's input or output, `clamp_outliers`, `match_level` and `match_to_input`, take ``(..., H, W, C)``
 arrays with any leading axes and static scalar parameters instead (no per-pixel maps, no parameter
 gradients); `check_match_settings` refuses a network config's settings for `match_to_input`.
+`exact_mask` (a boolean mask, not a filter) says where a frame's estimate is exact, for a denoiser to keep
+its input there; `check_exact_window` refuses a config's window for it.
 """
 from ._common import FilterError
 from .bilateral import (DELTA, ZETA, bilateral, cross_bilateral, drop_constant_features,
                         spatiotemporal_cross_bilateral)
+from .exact import check_exact_window, exact_mask
 from .gaussian import gaussian, gaussian_kernel_1d
 from .level import check_match_settings, match_level, match_to_input
 from .nlm import cross_nlm, prefilter_features
@@ -21,11 +24,13 @@ __all__ = [
     "FilterError",
     "ZETA",
     "bilateral",
+    "check_exact_window",
     "check_match_settings",
     "clamp_outliers",
     "cross_bilateral",
     "cross_nlm",
     "drop_constant_features",
+    "exact_mask",
     "gaussian",
     "gaussian_kernel_1d",
     "match_level",

@@ -39,7 +39,7 @@ _REGISTRY: dict[str, tuple[str, dict[str, Any]]] = {
     "demc-paper": ("jaxdenoise.methods.demc", {"recipe": "paper", "train_spps": (4,), "exposure": "none",
                                                "level_weight": 0.0}),
     "rae": ("jaxdenoise.methods.rae", {"outlier_clamp": 8.0, "match_level": 8.0, "match_max_gain": 1.3,
-                                       "match_spike": 8.0}),
+                                       "match_spike": 8.0, "keep_exact": True, "exact_window": 3}),
     "rae-paper": ("jaxdenoise.methods.rae", {"recipe": "paper", "train_spps": (1,), "exposure": "none",
                                              "input_transform": "power", "rate_input": False}),
     "gradnet": ("jaxdenoise.methods.gradnet", {}),

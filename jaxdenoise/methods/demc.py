@@ -55,7 +55,7 @@ from .. import color as color_ops
 from ..color import gamma
 from ..nn.state import call
 from ..errors import JaxdenoiseError
-from ..filters import check_match_settings, match_to_input
+from ..filters import check_exact_window, check_match_settings, exact_mask, match_to_input
 from ..pipeline import carried_stat, carried_stats
 
 __all__ = ["Config", "needs", "required", "keep_exact_pixels", "exact_pixels", "match_input_level", "init",
@@ -182,12 +182,7 @@ def _check(config: Config) -> None:
         raise JaxdenoiseError(f"demc: config.gamma must be > 0, got {config.gamma}")
     check_match_settings("demc: config.", config.match_level, config.match_spike, config.match_max_gain,
                          config.match_spike_by_rate)
-    _check_window(config.exact_window, "config.exact_window")
-
-
-def _check_window(window: Any, name: str) -> None:
-    if not (isinstance(window, (int, np.integer)) and (window == 0 or window >= 3 and window % 2)):
-        raise JaxdenoiseError(f"demc: {name} must be 0 (off) or an odd number of pixels >= 3, got {window!r}")
+    check_exact_window("demc: config.exact_window", config.exact_window)
 
 
 def needs(config: Config) -> frozenset[str]:
@@ -474,28 +469,13 @@ def keep_exact_pixels(out: jax.Array, buffers: Any, window: int = 0) -> jax.Arra
 
 
 def exact_pixels(buffers: Any, window: int = 0, dtype: Any = jnp.float32) -> tuple[jax.Array, jax.Array]:
-    """The mask ``(..., H, W, 1)`` of the pixels `keep_exact_pixels` keeps, and the colour (as
-    ``dtype``) they keep."""
-    _check_window(window, "keep_exact_pixels' window")
+    """The mask ``(..., H, W, 1)`` of the pixels `keep_exact_pixels` keeps
+    (`jaxdenoise.filters.exact_mask` of the frame's ``color``, ``color_var`` and ``spp``), and the
+    colour (as ``dtype``) they keep."""
+    check_exact_window("demc: keep_exact_pixels' window", window)
     get = _getter(buffers, optional=True)
-    var, spp = get("color_var"), get("spp")
     c = jnp.asarray(get("color"), dtype)
-    lit = (jnp.max(c, axis=-1, keepdims=True) > 0) & jnp.all(jnp.isfinite(c), axis=-1, keepdims=True)
-    many = exact = jnp.asarray(False)  # `many`: the variance rule applies
-    if var is not None and spp is not None:
-        spp = jnp.asarray(spp, jnp.float32)
-        many = jnp.reshape(spp, spp.shape + (1,) * (c.ndim - spp.ndim)) >= 2 if spp.ndim else spp >= 2
-        exact = many & (jnp.max(jnp.asarray(var), axis=-1, keepdims=True) == 0)
-    if window:
-        h, w, r = c.shape[-3], c.shape[-2], window // 2
-        p = jnp.pad(c, [(0, 0)] * (c.ndim - 3) + [(r, r), (r, r), (0, 0)], mode="edge")
-        agree = jnp.ones(lit.shape, bool)
-        for dy in range(window):
-            for dx in range(window):
-                same = p[..., dy:dy + h, dx:dx + w, :] == c
-                agree = agree & jnp.all(same, axis=-1, keepdims=True)
-        exact = exact | (~many & agree)
-    return exact & lit, c
+    return exact_mask(c, get("color_var"), get("spp"), window=window), c
 
 
 def loss(params: dict, batch: dict, config: Config):

@@ -23,7 +23,8 @@ eighth channel holds ``log2(spp) / RATE_SCALE`` (per pixel on an adaptively samp
 ``input_transform = "linear"`` feeds the demodulated colour without the power (measured, not kept);
 ``outlier_clamp`` (8 for ``rae``, 0 in `Config`) cuts isolated input spikes
 (`jaxdenoise.filters.clamp_outliers`), in place of the paper's path-space regularization (Sec. 3.1)
-that kept them out of its inputs.
+that kept them out of its inputs. ``keep_exact`` (on for ``rae``) keeps the input where a frame's samples
+all agreed (`jaxdenoise.filters.exact_mask`: a directly seen light), as `demc` does.
 
 Network (Sec. 4.1-4.2, Fig. 2): five encoder stages (widths 32, 43, 57, 76, 101) of a 3x3 conv and
 a recurrent block (`jaxdenoise.nn.RecurrentBlock`: a conv on the input, concatenation with the
@@ -57,7 +58,7 @@ import numpy as np
 from .. import color, metrics, nn, view
 from ..buffers import SAMPLE_COUNT_FIELD, Buffers
 from ..errors import JaxdenoiseError
-from ..filters import check_match_settings, clamp_outliers, match_to_input
+from ..filters import check_exact_window, check_match_settings, clamp_outliers, exact_mask, match_to_input
 from ..pipeline import carried_stat, carried_stats
 
 __all__ = ["Config", "needs", "required", "init", "apply", "init_state", "step", "loss", "run_sequence", "inputs",
@@ -120,6 +121,14 @@ class Config:
     match_spike: float = dataclasses.field(default=4.0, metadata={"fine_tune": True})
     match_max_gain: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})
     match_spike_by_rate: bool = dataclasses.field(default=False, metadata={"fine_tune": True})
+    # Exact pixels (ours, issue 34; DEMC's, `jaxdenoise.methods.demc.Config.keep_exact`): with
+    # `keep_exact` the output keeps the input's colour where `jaxdenoise.filters.exact_mask` says the
+    # estimate is exact (a frame of >= 2 spp: `color_var` 0 in every channel; else, with `exact_window`
+    # > 0, the whole `exact_window` x `exact_window` square agreeing bit for bit), before and after the
+    # level match, so the network's error on a directly seen light moves no level around it. The
+    # recurrent state is not touched; inference only.
+    keep_exact: bool = dataclasses.field(default=False, metadata={"fine_tune": True})
+    exact_window: int = dataclasses.field(default=0, metadata={"fine_tune": True})
     # The training recipe the weights folder is named after: "" (the default weights) or "paper"
     # (Sec. 5.3: 1-spp fly-throughs, the paper's input; registered as "rae-paper").
     recipe: str = dataclasses.field(default="", metadata={"training": True})
@@ -173,6 +182,7 @@ def _check(config: Config) -> None:
     if config.match_level and config.exposure != "frame":
         raise JaxdenoiseError(f"rae: config.match_level needs exposure 'frame' (the frame's level sets the cut's "
                               f"floor), got match_level {config.match_level} with {config.exposure!r}")
+    check_exact_window("rae: config.exact_window", config.exact_window)
     if not config.level_weight >= 0 or int(config.level_pool) < 1 or not config.level_eps > 0:
         raise JaxdenoiseError(f"rae: config.level_weight must be >= 0, config.level_pool >= 1 and config.level_eps "
                               f"> 0, got {config.level_weight!r}, {config.level_pool!r} and {config.level_eps!r}")
@@ -194,12 +204,15 @@ def needs(config: Config) -> frozenset[str]:
         out.add("roughness")
     if config.rate_input:
         out.add("spp")
+    if config.keep_exact:
+        out.add("color_var")
     return frozenset(out)
 
 
 def required(config: Config) -> frozenset[str]:
-    """`needs` without roughness: a frame that lacks it gets ``config.missing_roughness``."""
-    return needs(config) - {"roughness"}
+    """`needs` without roughness (a frame that lacks it gets ``config.missing_roughness``) and the colour
+    variance (a 1-spp frame has none; ``keep_exact`` then uses its window rule)."""
+    return needs(config) - {"roughness", "color_var"}
 
 
 def in_channels(config: Config) -> int:
@@ -415,12 +428,17 @@ def step(params: dict, state: tuple, buffers: Buffers, config: Config) -> tuple[
     x, size = nn.pad_to_multiple(inputs(buffers, config, scale), 32)
     state, y = _forward(params, x, state, config)
     out = jnp.maximum(_output(nn.crop_to(y, size), _get(buffers, "albedo"), scale, config), 0.0)
+    c = color.radiance(_get(buffers, "color"))
+    if config.keep_exact:  # exact pixels kept before the level match and after it
+        exact = exact_mask(_get(buffers, "color"), _get(buffers, "color_var", optional=True),
+                           _get(buffers, "spp", optional=True), window=config.exact_window)
+        out = jnp.where(exact, c, out)
     if config.match_level:
-        c = color.radiance(_get(buffers, "color")) * scale
         spp = _get(buffers, "spp", optional=True) if config.match_spike_by_rate else None
-        out = match_to_input(out * scale, c, config.match_level, spike=config.match_spike,
+        out = match_to_input(out * scale, c * scale, config.match_level, spike=config.match_spike,
                              floor=color.EXPOSURE_LEVEL, max_gain=config.match_max_gain or float("inf"),
                              spp=spp) / scale
+        out = jnp.where(exact, c, out) if config.keep_exact else out
     return state, out
 
 

@@ -479,9 +479,10 @@ FILTERS: dict[str, FilterSpec] = {
         frozenset({"color", "albedo"}), ("sigma",), static_param=True, convex=False, source=lambda b: b.albedo,
         grad_field="albedo"),
 }
-# Public names of jaxdenoise.filters that are not image filters (helpers and the error type).
+# Public names of jaxdenoise.filters that are not image filters (helpers and the error type; `exact_mask`
+# returns a boolean mask by exact comparisons: nothing to overflow, no parameter, no gradient).
 FILTER_HELPERS = frozenset({"FilterError", "gaussian_kernel_1d", "drop_constant_features", "DELTA", "ZETA",
-                            "check_match_settings"})
+                            "check_match_settings", "check_exact_window", "exact_mask"})
 
 
 def public_filters() -> list[str]:
