@@ -987,6 +987,7 @@ def render_page(text: str, results: Path, page: Path) -> str:
 # paths relative to the results folder.
 STUDIES: dict[str, tuple[str, str]] = {
     "conv.md": ("bench_conv", "conv.json"),
+    "im2col/im2col.md": ("bench_im2col", "im2col/im2col.json"),
     "xla_flags/xla_flags.md": ("bench_xla_flags", "xla_flags/xla_flags.json"),
     "memory_reuse/xla_flags.md": ("bench_xla_flags", "memory_reuse/xla_flags.json"),
     "xnn_convolutions/xla_flags.md": ("bench_xla_flags", "xnn_convolutions/xla_flags.json"),
