@@ -1030,6 +1030,7 @@ STUDIES: dict[str, tuple[str, str]] = {
     "gradient_emission/gradient_emission.md": ("gradient_emission", "gradient_emission/gradient_emission.json"),
     "tiling/tiling.md": ("tiling", "tiling/tiling.json"),
     "demc_rates/demc_levels.md": ("demc_levels", "demc_rates/demc_levels.json"),
+    "demc_rates/indirect_val/demc_levels.md": ("demc_levels", "demc_rates/indirect_val/demc_levels.json"),
     "rae_rates/demc_levels.md": ("demc_levels", "rae_rates/demc_levels.json"),
     "rae_rates/level_term/demc_levels.md": ("demc_levels", "rae_rates/level_term/demc_levels.json"),
     "level_correction/level_correction.md": ("level_correction", "level_correction/level_correction.json"),
