@@ -107,7 +107,8 @@ def measure_levels(runs: int, rows: int, mm_n: int) -> dict:
     from jaxdenoise import runtime
 
     runtime.keep_memory(respect_env=True)
-    res: dict = {"allocator": runtime.status(), "size": list(SIZE), "widths": list(WIDTHS), "rows": rows, "runs": runs, "levels": [],
+    res: dict = {"allocator": runtime.status(), "size": list(SIZE), "widths": list(WIDTHS), "rows": rows,
+                 "runs": runs, "levels": [],
                  "jax": jax.__version__, "device": str(jax.devices()[0]), "cores": os.cpu_count(),
                  "load_start": os.getloadavg()[0]}
     rng = np.random.default_rng(0)
@@ -174,7 +175,8 @@ def page(res: dict) -> str:
               + f". Fastest complete convolution: **{best}**.", "",
               f"Row blocks: {res['rows']} image rows per block. Memory kept for reuse: {res['allocator'].get('kept')}. "
               f"jax {res['jax']}, {res['device']}, {res['cores']} "
-              f"cores; load average {num(res['load_start'], '.2f')} at start, {num(res['load_end'], '.2f')} at the end.",
+              f"cores; load average {num(res['load_start'], '.2f')} at start, "
+              f"{num(res['load_end'], '.2f')} at the end.",
               "", "Command: `JAX_PLATFORMS=cpu python experiments/bench_im2col.py --out docs/results/im2col`."]
     return "\n".join(lines) + "\n"
 
