@@ -248,7 +248,7 @@ def page(res: dict) -> str:
               "are zero-padded to a multiple of 8 before every spatial convolution, and a 1x1 stride-1 "
               "convolution is a matrix product over channels (`jnp.dot`). Transposed convolutions are computed "
               "per output phase instead of over a zero-dilated input. Reverse mode computes a spatial "
-              "convolution's kernel gradient as a scan of row-block im2col matrix products (`_conv_by_rows`) "
+              "convolution's kernel gradient as a scan of row-block im2col matrix products (`conv_by_rows`) "
               "instead of XLA's transposed convolution.",
               "- A small U-Net trained for 20 minutes on real crops (the issue's end-to-end check) is "
               "`experiments/unet_20min.py`; its results are in `unet_20min.json`.", "",

@@ -7,8 +7,9 @@ bf16 lever): one 3x3 convolution per level of RAE's U-Net at 1280x720 (padded to
 - ``xla bf16``: the same convolution in bfloat16 (accumulating in float32);
 - ``im2col f32`` / ``im2col bf16``: the 9 shifted views concatenated over channels (the patch matrix,
   ``H W x 9 C``), then one matrix product with the ``9 C x C_out`` kernel;
-- ``row blocks bf16``: the same by blocks of ``--rows`` image rows (a ``lax.scan``), so each block's
-  patch matrix stays in cache;
+- ``row blocks bf16``: the same by blocks of output rows, so each block's patch matrix stays in cache:
+  `jaxdenoise.nn.conv.conv_by_rows` (the kernel gradient's row-block path, blocks of about
+  `jaxdenoise.nn.conv.BLOCK_PIXELS` pixels) in bfloat16, accumulating in float32;
 - ``9 taps bf16``: nine ``H W x C`` by ``C x C_out`` products of the shifted views, summed (no patch
   matrix);
 - peers: the bf16 patch matrix's product alone (built before the clock starts: what the matrix product
@@ -55,12 +56,13 @@ def _patches(x, dt):
     return jnp.concatenate([xp[:, a:a + h, b:b + w, :] for a in range(3) for b in range(3)], axis=-1)
 
 
-def conv_variants(rows: int) -> dict:
+def conv_variants() -> dict:
     """``name -> f(x, w)`` for every measured way to compute the same convolution (module docstring)."""
     import jax.numpy as jnp
     from jax import lax
 
     from jaxdenoise import nn
+    from jaxdenoise.nn.conv import conv_by_rows
 
     bf = jnp.bfloat16
     f32 = jnp.float32
@@ -76,16 +78,7 @@ def conv_variants(rows: int) -> dict:
         return lambda x, w: jnp.dot(_patches(x, dt), w.reshape(-1, w.shape[-1]).astype(dt), preferred_element_type=f32)
 
     def by_rows(x, w):
-        n, h, wd, c = x.shape
-        xp = jnp.pad(x.astype(bf), ((0, 0), (1, 1), (1, 1), (0, 0)))
-        wm = w.reshape(-1, w.shape[-1]).astype(bf)
-
-        def body(_, i):
-            blk = lax.dynamic_slice_in_dim(xp, i * rows, rows + 2, axis=1)
-            cols = jnp.concatenate([blk[:, a:a + rows, b:b + wd, :] for a in range(3) for b in range(3)], axis=-1)
-            return None, jnp.dot(cols, wm, preferred_element_type=f32)
-        _, ys = lax.scan(body, None, jnp.arange(h // rows))
-        return jnp.moveaxis(ys, 0, 1).reshape(n, h, wd, -1)
+        return conv_by_rows(x.astype(bf), w.astype(bf), (1, 1), "SAME", (1, 1), preferred_element_type=f32)
 
     def taps(x, w):
         h, wd = x.shape[1], x.shape[2]
@@ -100,15 +93,16 @@ def conv_variants(rows: int) -> dict:
             "row blocks bf16": by_rows, "9 taps bf16": taps}
 
 
-def measure_levels(runs: int, rows: int, mm_n: int) -> dict:
+def measure_levels(runs: int, mm_n: int) -> dict:
     import jax
     import jax.numpy as jnp
 
     from jaxdenoise import runtime
+    from jaxdenoise.nn.conv import BLOCK_PIXELS
 
     runtime.keep_memory(respect_env=True)
-    res: dict = {"allocator": runtime.status(), "size": list(SIZE), "widths": list(WIDTHS), "rows": rows,
-                 "runs": runs, "levels": [],
+    res: dict = {"allocator": runtime.status(), "size": list(SIZE), "widths": list(WIDTHS),
+                 "block_pixels": BLOCK_PIXELS, "runs": runs, "levels": [],
                  "jax": jax.__version__, "device": str(jax.devices()[0]), "cores": os.cpu_count(),
                  "load_start": os.getloadavg()[0]}
     rng = np.random.default_rng(0)
@@ -117,7 +111,7 @@ def measure_levels(runs: int, rows: int, mm_n: int) -> dict:
         _, st = timed(lambda p, q: jnp.dot(p, q, preferred_element_type=jnp.float32), a, a, runs=runs)
         res[name] = {"n": mm_n, "median_s": st["median_s"], "runs_s": st["runs_s"],
                      "gflops": 2 * mm_n ** 3 / 1e9 / st["median_s"]}
-    fns = conv_variants(rows)
+    fns = conv_variants()
     for level, c in enumerate(WIDTHS):
         h, w = SIZE[0] >> level, SIZE[1] >> level
         x = jnp.asarray(rng.standard_normal((1, h, w, c), np.float32))
@@ -126,8 +120,6 @@ def measure_levels(runs: int, rows: int, mm_n: int) -> dict:
         row = {"level": level, "h": h, "w": w, "c_in": c, "c_out": c, "gflop": gflop, "variants": {}}
         ref = None
         for name, fn in fns.items():
-            if name == "row blocks bf16" and h % rows:
-                continue
             out, st = timed(fn, x, k, runs=runs)
             out = np.asarray(out, np.float32)
             ref = out if ref is None else ref
@@ -173,7 +165,7 @@ def page(res: dict) -> str:
               "Summed over the levels (those measured at every level): "
               + "; ".join(f"{v} {1e3 * t:.0f} ms" for v, t in total.items())
               + f". Fastest complete convolution: **{best}**.", "",
-              f"Row blocks: {res['rows']} image rows per block. Memory kept for reuse: {res['allocator'].get('kept')}. "
+              f"Row blocks: about {res['block_pixels']} output pixels per block. Memory kept for reuse: {res['allocator'].get('kept')}. "
               f"jax {res['jax']}, {res['device']}, {res['cores']} "
               f"cores; load average {num(res['load_start'], '.2f')} at start, "
               f"{num(res['load_end'], '.2f')} at the end.",
@@ -185,11 +177,10 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="docs/results/im2col")
     ap.add_argument("--runs", type=int, default=5)
-    ap.add_argument("--rows", type=int, default=2, help="image rows per block of the row-block variant")
     ap.add_argument("--matmul", type=int, default=2048, help="the peer matrix products' cube size")
     args = ap.parse_args()
     t = time.perf_counter()
-    res = measure_levels(args.runs, args.rows, args.matmul)
+    res = measure_levels(args.runs, args.matmul)
     res["seconds"] = time.perf_counter() - t
     print(write_study(Path(args.out), "im2col.json", "im2col.md", res, page))
 

@@ -218,27 +218,26 @@ def choose_exact(args) -> dict:
     settings = {"off": {"keep_exact": False, "exact_window": 0}, "variance": {"keep_exact": True, "exact_window": 0}}
     settings |= {f"w{w}": {"keep_exact": True, "exact_window": int(w)} for w in args.windows.split(",")}
     res = {"init": args.init, "folders": folders, "settings": {}}
+    counts = {d: sum(len(f["frames"]) if "frames" in f else 1 for f in fr) for d, fr in frames.items()}
     for label, over in settings.items():
         m = base.with_config(**over)
         per = {d: validate(m, params, fr) for d, fr in frames.items()}
-        every = validate(m, params, [f for fr in frames.values() for f in fr])
-        kept = {}
-        for d, fr in frames.items():
-            k = wrong = 0
+        # the geometric mean over every frame, from each folder's (weighted by its frames)
+        every = float(np.exp(sum(counts[d] * np.log(v["relmse_geomean"]) for d, v in per.items())
+                             / sum(counts.values())))
+        kept = {d: {"kept": 0, "not_exact": 0} for d in frames}
+        for d, fr in frames.items() if over["keep_exact"] else ():
             for f in fr:
                 pairs = zip(f["frames"], f["references"]) if "frames" in f else [(f["buffers"], f["reference"])]
                 for b, ref in pairs:
-                    if not over["keep_exact"]:
-                        continue
                     mask = np.asarray(exact_mask(b.color, b.color_var, b.spp, window=over["exact_window"]))[..., 0]
                     c, r = np.asarray(b.color, np.float64)[mask], np.asarray(ref, np.float64)[mask]
-                    k += int(mask.sum())
-                    wrong += int(np.sum(np.any(np.abs(c - r) > 0.05 * np.abs(r) + 1e-6, axis=-1)))
-            kept[d] = {"kept": k, "not_exact": wrong}
-        res["settings"][label] = {"config": over, "relmse_geomean": every["relmse_geomean"],
+                    kept[d]["kept"] += int(mask.sum())
+                    kept[d]["not_exact"] += int(np.sum(np.any(np.abs(c - r) > 0.05 * np.abs(r) + 1e-6, axis=-1)))
+        res["settings"][label] = {"config": over, "relmse_geomean": every,
                                   "folders": {d: {x: v[x] for x in ("relmse", "relmse_geomean", "per_spp")} | kept[d]
                                               for d, v in per.items()}}
-        print(label, every["relmse_geomean"], {d: (v["relmse_geomean"], kept[d]) for d, v in per.items()}, flush=True)
+        print(label, every, {d: (v["relmse_geomean"], kept[d]) for d, v in per.items()}, flush=True)
     best = min(res["settings"], key=lambda k: res["settings"][k]["relmse_geomean"])
     beats = res["settings"][best]["relmse_geomean"] < res["settings"]["off"]["relmse_geomean"]
     res["chosen"] = best if beats else "off"

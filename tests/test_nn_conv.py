@@ -132,6 +132,24 @@ def test_fast_kernel_gradient_equals_xlas(h, w, k, s, d, pad, branch, monkeypatc
         np.testing.assert_allclose(np.asarray(a) / scale, np.asarray(b) / scale, rtol=0, atol=1e-5)
 
 
+def test_conv_by_rows_is_the_correlation_and_takes_an_accumulation_type(monkeypatch):
+    """`nn.conv.conv_by_rows` (public since 0.9.15) as a forward convolution: XLA's correlation on odd
+    sizes, a stride and a dilation across several blocks (block shrunk to 64 pixels), relative 1e-5;
+    bfloat16 inputs accumulating in float32 come back float32 within bfloat16's rounding."""
+    monkeypatch.setattr(nn.conv, "BLOCK_PIXELS", 64)
+    for h, w, k, s, d in ((37, 29, 3, 1, 1), (23, 41, 3, 2, 2)):
+        x, wt = jnp.asarray(_x(2, h, w, 3)), jnp.asarray(_x(k, k, 3, 5))
+        want = jax.lax.conv_general_dilated(x, wt, (s, s), "SAME", rhs_dilation=(d, d),
+                                            dimension_numbers=("NHWC", "HWIO", "NHWC"))
+        got = nn.conv.conv_by_rows(x, wt, (s, s), "SAME", (d, d))
+        scale = float(np.max(np.abs(np.asarray(want))))
+        np.testing.assert_allclose(np.asarray(got) / scale, np.asarray(want) / scale, rtol=0, atol=1e-5)
+    low = nn.conv.conv_by_rows(x.astype(jnp.bfloat16), wt.astype(jnp.bfloat16), (s, s), "SAME", (d, d),
+                               preferred_element_type=jnp.float32)
+    assert low.dtype == jnp.float32
+    np.testing.assert_allclose(np.asarray(low) / scale, np.asarray(want) / scale, rtol=0, atol=2e-2)
+
+
 def test_conv_leading_axes_and_no_bias():
     init, apply = nn.Conv(2, 3, bias=False)
     shape, params = init(jax.random.PRNGKey(1), (3, 2, 6, 5, 4))

@@ -472,7 +472,6 @@ def exact_pixels(buffers: Any, window: int = 0, dtype: Any = jnp.float32) -> tup
     """The mask ``(..., H, W, 1)`` of the pixels `keep_exact_pixels` keeps
     (`jaxdenoise.filters.exact_mask` of the frame's ``color``, ``color_var`` and ``spp``), and the
     colour (as ``dtype``) they keep."""
-    check_exact_window("demc: keep_exact_pixels' window", window)
     get = _getter(buffers, optional=True)
     c = jnp.asarray(get("color"), dtype)
     return exact_mask(c, get("color_var"), get("spp"), window=window), c

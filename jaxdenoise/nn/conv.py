@@ -18,7 +18,7 @@
 
 Reverse mode computes a spatial convolution's kernel gradient through the layer's own derivative
 rule on CPU (`WEIGHT_GRADIENT`, `_kernel_tangent`): row-block im2col matrix products on large
-images, XLA's transposed convolution on small ones; the forward pass is XLA's convolution
+images (`conv_by_rows`, public so that experiments can time it as a forward convolution), XLA's transposed convolution on small ones; the forward pass is XLA's convolution
 unchanged. On an accelerator, XLA's own kernel gradient is kept (the rule was measured on CPU).
 
 Inputs may carry any number of leading axes (``(H, W, C)``, ``(N, H, W, C)``, ``(T, N, H, W, C)``);
@@ -36,7 +36,7 @@ import numpy as np
 from jax.custom_derivatives import SymbolicZero
 
 __all__ = ["Conv", "ConvTranspose", "he_normal_init", "bilinear_init", "identity_init", "pad_to_multiple",
-           "crop_to"]
+           "crop_to", "conv_by_rows"]
 
 _DN = ("NHWC", "HWIO", "NHWC")
 
@@ -260,7 +260,7 @@ def _correlate(x: jax.Array, w: jax.Array, stride: tuple[int, int], pad: Any, di
 # 1228 ms against a 59 ms forward; row blocks: 109 ms) but is as fast or faster than row blocks on
 # training crops of 64x64 and below (docs/results/conv.md).
 WEIGHT_GRADIENT = "fast"
-# Output pixels per row block of `_conv_by_rows`: the block's im2col matrix stays in cache. 2048
+# Output pixels per row block of `conv_by_rows`: the block's im2col matrix stays in cache. 2048
 # was the fastest of 2048-65536 on every large-image shape measured.
 BLOCK_PIXELS = 2048
 # Output images (H_out x W_out) above this many pixels take row blocks; at or below, XLA's kernel
@@ -299,28 +299,30 @@ def _kernel_tangent(x: jax.Array, tw: jax.Array, stride: tuple[int, int], pad: A
                     dilation: tuple[int, int]) -> jax.Array:
     """``conv(x, tw)``, the kernel term of the convolution's tangent, in the form whose transpose
     (reverse mode's kernel gradient) was fastest on this CPU for its size (docs/results/conv.md):
-    row blocks (`_conv_by_rows`) for output images above `ROW_BLOCK_MIN_PIXELS` pixels; below, XLA's
+    row blocks (`conv_by_rows`) for output images above `ROW_BLOCK_MIN_PIXELS` pixels; below, XLA's
     transposed convolution, with the output channels zero-padded to a multiple of
     `CHANNEL_MULTIPLE` (exact; 1.3-1.5x faster on RAE's 43 / 57 / 76 channels)."""
     kh, kw, _, cout = tw.shape
     ho = _conv_size(x.shape[1], kh, stride[0], dilation[0], pad, 0)
     wo = _conv_size(x.shape[2], kw, stride[1], dilation[1], pad, 1)
     if ho * wo > ROW_BLOCK_MIN_PIXELS:
-        return _conv_by_rows(x, tw, stride, pad, dilation)
+        return conv_by_rows(x, tw, stride, pad, dilation)
     extra = (-cout) % CHANNEL_MULTIPLE
     if extra:
         return _xla_conv(x, jnp.pad(tw, ((0, 0), (0, 0), (0, 0), (0, extra))), stride, pad, dilation)[..., :cout]
     return _xla_conv(x, tw, stride, pad, dilation)
 
 
-def _conv_by_rows(x: jax.Array, w: jax.Array, stride: tuple[int, int], pad: Any,
-                  dilation: tuple[int, int]) -> jax.Array:
-    """The same correlation as `_xla_conv`, as a scan over blocks of output rows across the batch:
-    each block's im2col matrix (``n * rows * W_out`` pixels, about `BLOCK_PIXELS`, x
-    ``kh * kw * c_in``) times the kernel as a ``(kh kw c_in, c_out)`` matrix. Linear in ``w``; its
-    transpose, which reverse mode derives, is the sum over blocks of ``cols^T @ g``. The body is
-    rematerialised (`jax.checkpoint`), so reverse mode keeps ``x`` and not the 9x larger im2col
-    matrix."""
+def conv_by_rows(x: jax.Array, w: jax.Array, stride: tuple[int, int], pad: Any,
+                 dilation: tuple[int, int], preferred_element_type: Any = None) -> jax.Array:
+    """The same correlation as XLA's convolution (NHWC input, HWIO kernel, ``pad`` a padding string or
+    explicit pairs), as a scan over blocks of output rows across the batch: each block's im2col matrix
+    (``n * rows * W_out`` pixels, about `BLOCK_PIXELS`, x ``kh * kw * c_in``) times the kernel as a
+    ``(kh kw c_in, c_out)`` matrix (``preferred_element_type``: the product's accumulation type, as
+    `jnp.dot` takes it). Linear in ``w``; its transpose, which reverse mode derives, is the sum over
+    blocks of ``cols^T @ g``. The body is rematerialised (`jax.checkpoint`), so reverse mode keeps ``x``
+    and not the 9x larger im2col matrix. The kernel gradient's fast rule uses it;
+    experiments/bench_im2col.py measures it as a forward convolution."""
     kh, kw, cin, cout = w.shape
     n, h, wd, _ = x.shape
     (sh, sw), (dh, dw) = stride, dilation
@@ -328,7 +330,7 @@ def _conv_by_rows(x: jax.Array, w: jax.Array, stride: tuple[int, int], pad: Any,
                               if isinstance(pad, str) else pad)
     ho, wo = _conv_size(h, kh, sh, dh, pad, 0), _conv_size(wd, kw, sw, dw, pad, 1)
     if ho == 0 or wo == 0 or n == 0:
-        return jnp.zeros((n, ho, wo, cout), jnp.result_type(x, w))
+        return jnp.zeros((n, ho, wo, cout), preferred_element_type or jnp.result_type(x, w))
     rows = max(1, min(ho, BLOCK_PIXELS // (n * wo)))
     blocks = -(-ho // rows)
     span = sh * (rows - 1) + dh * (kh - 1) + 1  # padded input rows one block reads
@@ -343,7 +345,7 @@ def _conv_by_rows(x: jax.Array, w: jax.Array, stride: tuple[int, int], pad: Any,
                                               (n, dh * i + sh * (rows - 1) + 1, dw * j + sw * (wo - 1) + 1, cin),
                                               (1, sh, sw, 1))
                                 for i in range(kh) for j in range(kw)], axis=-1)
-        return carry, jnp.dot(cols, wm)
+        return carry, jnp.dot(cols, wm, preferred_element_type=preferred_element_type)
 
     _, ys = jax.lax.scan(body, None, jnp.arange(blocks))  # (blocks, n, rows, W_out, c_out)
     return ys.transpose(1, 0, 2, 3, 4).reshape(n, blocks * rows, wo, cout)[:, :ho]
