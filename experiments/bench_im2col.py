@@ -165,7 +165,8 @@ def page(res: dict) -> str:
               "Summed over the levels (those measured at every level): "
               + "; ".join(f"{v} {1e3 * t:.0f} ms" for v, t in total.items())
               + f". Fastest complete convolution: **{best}**.", "",
-              f"Row blocks: about {res['block_pixels']} output pixels per block. Memory kept for reuse: {res['allocator'].get('kept')}. "
+              f"Row blocks: about {res['block_pixels']} output pixels per block. "
+              f"Memory kept for reuse: {res['allocator'].get('kept')}. "
               f"jax {res['jax']}, {res['device']}, {res['cores']} "
               f"cores; load average {num(res['load_start'], '.2f')} at start, "
               f"{num(res['load_end'], '.2f')} at the end.",
