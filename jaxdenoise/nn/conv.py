@@ -19,7 +19,8 @@
 Reverse mode computes a spatial convolution's kernel gradient through the layer's own derivative
 rule on CPU (`WEIGHT_GRADIENT`, `_kernel_tangent`): row-block im2col matrix products on large
 images (`conv_by_rows`, public so that experiments can time it as a forward convolution), XLA's
-transposed convolution on small ones; the forward pass is XLA's convolution unchanged. On an accelerator, XLA's own kernel gradient is kept (the rule was measured on CPU).
+transposed convolution on small ones; the forward pass is XLA's convolution unchanged. On an
+accelerator, XLA's own kernel gradient is kept (the rule was measured on CPU).
 
 Inputs may carry any number of leading axes (``(H, W, C)``, ``(N, H, W, C)``, ``(T, N, H, W, C)``);
 they are flattened into one batch axis around the XLA convolution and restored.
