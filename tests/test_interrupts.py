@@ -20,17 +20,6 @@ ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": str(ROOT / "tests") + os.pathsep + os.environ.get("PYTHONPATH", "")}
 
 
-def _kill_after(cmd: list[str], seconds: float, cwd=ROOT, env=ENV) -> int | None:
-    """Start ``cmd``, SIGKILL it after ``seconds`` (None if it finished first: its return code)."""
-    p = subprocess.Popen(cmd, cwd=cwd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        return p.wait(timeout=seconds)
-    except subprocess.TimeoutExpired:
-        p.send_signal(signal.SIGKILL)
-        p.wait()
-        return None
-
-
 def _kill_when(cmd: list[str], ready, cwd=ROOT) -> int | None:
     """Start ``cmd``, SIGKILL it as soon as ``ready()`` holds (None if it finished first: its return
     code). A moment set by the run's progress, not by a wall time measured on another run (a second
@@ -189,15 +178,31 @@ def test_bench_killed_leaves_no_half_written_report(tmp_path):
     (data / "scene_0000").mkdir(parents=True)
     make_shot(data / "scene_0000", synthetic_frame(16, 16, seed=1).color,
               {4: synthetic_frame(16, 16, seed=2), 16: synthetic_frame(16, 16, seed=3)})
-    cmd = [sys.executable, "-m", "jaxdenoise.cli", "bench", str(data), "--methods", "input,gaussian",
-           "--out", str(tmp_path / "r"), "--quiet"]
-    # no compile cache: every run traces and compiles afresh, so each takes about as long as the first (with
-    # the cache, a later run reads its traced programs and executables back and can finish before the kill)
-    env = {**ENV, "JAXDENOISE_CACHE_DIR": "off"}
-    duration = _run(cmd, env)
-    for fraction in (0.3, 0.5, 0.7):
-        assert _kill_after(cmd, fraction * duration, env=env) is None, f"bench finished before the kill at {fraction}"
-        if (tmp_path / "r").exists():
-            _all_complete(tmp_path / "r")
-    _run(cmd, env)
-    assert json.loads((tmp_path / "r" / "results.json").read_text())["records"]
+    cmd = [sys.executable, "-m", "jaxdenoise.cli", "bench", str(data), "--methods", "input,gaussian", "--quiet"]
+    report = tmp_path / "r"
+    _run(cmd + ["--out", str(report)])
+    _all_complete(report)
+    # Kill moments set by the run's own progress (never a fraction of another run's wall time: a run
+    # can be much faster than the one timed): while scoring (its report folder made, nothing in it),
+    # while writing a new report (its first file, temporary or final, has appeared: the plot is
+    # still to come), and while writing over a complete one (a temporary file in it, or its
+    # results.json replaced: again before the plot).
+    before = (report / "results.json").stat().st_mtime_ns
+
+    def rewriting() -> bool:
+        try:
+            replaced = (report / "results.json").stat().st_mtime_ns != before
+        except FileNotFoundError:
+            replaced = True
+        return replaced or any(f.name.startswith(".") for f in report.iterdir())
+
+    moments = {tmp_path / "scoring": lambda f: f.is_dir(),
+               tmp_path / "writing": lambda f: f.is_dir() and any(f.iterdir()),
+               report: lambda f: rewriting()}
+    for out, ready in moments.items():
+        assert _kill_when(cmd + ["--out", str(out)], lambda: ready(out)) is None, \
+            f"bench finished before the kill ({out.name})"
+        if out.exists():
+            _all_complete(out)
+    _run(cmd + ["--out", str(report)])
+    assert json.loads((report / "results.json").read_text())["records"]
