@@ -61,6 +61,17 @@ and those that are not exact (a channel more than 5 % from the reference's). Wri
 
     python experiments/rae_rates.py exact --init jaxdenoise/weights/rae --out docs/results/rae_rates
 
+``taa`` chooses temporal anti-aliasing (`jaxdenoise.methods.rae.Config.taa_alpha`, ``taa_window``,
+``taa_tolerance``; docs/methods/rae.md "Temporal anti-aliasing") for the weights and settings in
+``--init``, no training: off and every combination of ``--alphas`` x ``--taa-windows`` x
+``--tolerances``, each run over the validation fly-throughs of ``--val-data`` and ``--taa-data``
+(state carried, the sequence driver) and scored per sequence and rate by the mean RelMSE of its
+frames and its temporal error (`jaxdenoise.metrics.temporal_error`). The rule: among the settings
+whose mean RelMSE at every rate is at most off's, the lowest geometric mean over sequences and rates
+of sqrt(RelMSE x temporal error); off unless that beats off's. Written to ``OUT/taa.json``:
+
+    python experiments/rae_rates.py taa --init jaxdenoise/weights/rae --out docs/results/rae_rates
+
 Every training run's record goes to ``OUT/summary.json``.
 """
 from __future__ import annotations
@@ -245,9 +256,50 @@ def choose_exact(args) -> dict:
     return res
 
 
+def choose_taa(args) -> dict:
+    """The ``taa`` subcommand (module docstring): RelMSE and temporal error of each TAA setting of the
+    weights in ``--init`` on the validation fly-throughs, then the rule."""
+    from jaxdenoise import metrics
+    from jaxdenoise.api import resolve
+    from jaxdenoise.sequence import run_all
+    from jaxdenoise.train import load_validation
+
+    base, params = resolve("rae", args.init)
+    reader = base.with_config(taa_alpha=1.0)  # reads the positions, normals and cameras TAA needs
+    folders = [args.val_data] + [d for d in args.taa_data.split(",") if d.strip()]
+    seqs = [(d, f) for d in folders for f in load_validation(reader, d) if "frames" in f]
+    if not seqs:
+        raise SystemExit(f"taa: no validation fly-through in {folders}")
+    settings = {"off": {"taa_alpha": 0.0}}
+    settings |= {f"a{a:g} w{w} t{t:g}": {"taa_alpha": a, "taa_window": w, "taa_tolerance": t}
+                 for a in (float(x) for x in args.alphas.split(",")) for w in (int(x) for x in args.taa_windows.split(","))
+                 for t in (float(x) for x in args.tolerances.split(","))}
+    res = {"init": args.init, "folders": folders, "sequences": len(seqs), "settings": {}}
+    for label, over in settings.items():
+        m = base.with_config(**over)
+        rows = []
+        for d, f in seqs:
+            outs, refs = run_all(m, params, f["frames"]), np.stack(f["references"])
+            rows.append({"folder": d, "spp": int(f["spp"]),
+                         "relmse": float(np.mean([metrics.relmse(o, r) for o, r in zip(outs, refs)])),
+                         "temporal": float(metrics.temporal_error(outs, refs))})
+        per_spp = {str(s): {k: float(np.mean([r[k] for r in rows if r["spp"] == s])) for k in ("relmse", "temporal")}
+                   for s in sorted({r["spp"] for r in rows})}
+        score = float(np.exp(np.mean([0.5 * (np.log(r["relmse"]) + np.log(r["temporal"])) for r in rows])))
+        res["settings"][label] = {"config": over, "score": score, "per_spp": per_spp, "rows": rows}
+        print(label, f"{score:.5f}", per_spp, flush=True)
+    off = res["settings"]["off"]
+    ok = [k for k, r in res["settings"].items()
+          if all(r["per_spp"][s]["relmse"] <= off["per_spp"][s]["relmse"] for s in off["per_spp"])]
+    best = min(ok, key=lambda k: res["settings"][k]["score"])
+    res["chosen"] = best if res["settings"][best]["score"] < off["score"] else "off"
+    res["command"] = " ".join(["python", "experiments/rae_rates.py", *sys.argv[1:]])
+    return res
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("what", choices=("arms", "continue", "level", "clamp", "match", "exact"))
+    ap.add_argument("what", choices=("arms", "continue", "level", "clamp", "match", "exact", "taa"))
     ap.add_argument("--data", default="runs/rae_rates_data")
     ap.add_argument("--val-data", default="data/rae_library_val")
     ap.add_argument("--out", required=True)
@@ -277,8 +329,18 @@ def main() -> None:
     ap.add_argument("--windows", default="3,5,7", help="exact: the window rule's squares to score")
     ap.add_argument("--exact-data", default="data/procedural_val,data/library_val,data/library_val2",
                     help="exact: validation folders of single frames scored beside the fly-throughs")
+    ap.add_argument("--alphas", default="0.5,0.25,0.1", help="taa: blend weights (1 / the longest history)")
+    ap.add_argument("--taa-windows", default="0,3", help="taa: clamp neighbourhoods (0: no clamp)")
+    ap.add_argument("--tolerances", default="0,0.02,0.1", help="taa: tangent-plane tolerances (0: no test)")
+    ap.add_argument("--taa-data", default="data/rae_library_val2",
+                    help="taa: more validation fly-throughs scored beside --val-data (comma list; '' for none)")
     args = ap.parse_args()
     out = Path(args.out)
+    if args.what == "taa":
+        res = choose_taa(args)
+        write_json(out / "taa.json", res)
+        print("chosen:", res["chosen"])
+        return
     if args.what == "exact":
         res = choose_exact(args)
         write_json(out / "exact_pixels.json", res)

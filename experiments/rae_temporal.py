@@ -13,6 +13,15 @@ each row also keeps the RelMSE of every frame and the temporal error of every co
 from a zero state) can be told from its steady state, and every frame's colour level per channel
 (`demc_levels.frame_levels`: the median box-mean ratio to the reference over the lit surface pixels
 of the frame's rebuilt scene, issue 34's measure; ``--masks none``: every lit pixel).
+
+A method ``label=FOLDER`` runs `rae` with the weights (and config) in ``FOLDER`` (an earlier version, for
+a before/after row); ``name+taa`` runs ``name`` and then temporal anti-aliasing over its frames with
+the shipped `rae`'s TAA settings (`jaxdenoise.filters.taa_step`; Chaitanya et al. Sec. 5.4 apply TAA to
+every method they compare), so a per-frame method can be compared with TAA too:
+
+    python experiments/rae_temporal.py --data data/rae_library_eval \
+        --methods input,oidn,oidn+taa,rae-paper,rae,rae-0.9.15=runs/rae_0915,rae-per-frame \
+        --out docs/results/rae_rates/temporal.json
 """
 from __future__ import annotations
 
@@ -36,6 +45,28 @@ from jaxdenoise.methods import get  # noqa: E402
 from demc_levels import frame_levels, scene_masks, scene_of  # noqa: E402
 
 
+def with_taa(outs: np.ndarray, frames: list, config) -> np.ndarray:
+    """``outs`` (T, H, W, 3) after `jaxdenoise.filters.taa_step` with ``config``'s ``taa_*`` settings,
+    frame by frame, reprojected through ``frames``' positions, normals and cameras."""
+    import functools
+
+    import jax
+
+    from jaxdenoise.filters import taa_init, taa_step
+
+    if not config.taa_alpha:
+        raise SystemExit("+taa: the shipped rae config has no TAA (taa_alpha 0)")
+    step = jax.jit(functools.partial(taa_step, alpha=config.taa_alpha, window=config.taa_window,
+                                     tolerance=config.taa_tolerance))
+    state, res = taa_init(outs.shape[1:]), []
+    for o, f in zip(outs, frames):
+        if f.position is None or f.normal is None or f.world_to_ndc is None:
+            raise BuffersError("+taa: a frame lacks position, normal or world_to_ndc (TAA reprojects through them)")
+        state, y = step(state, o, f.position, f.normal, f.world_to_ndc)
+        res.append(np.asarray(y))
+    return np.stack(res)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", default="data/rae_test")
@@ -50,13 +81,14 @@ def main() -> None:
     if not seqs:
         raise SystemExit(f"{args.data}: no frame_XXXX/ sequence")
     names = args.methods.split(",")
-    fns = {}
+    fns, taa = {}, get("rae").config
     for n in names:
-        base = "rae" if n == "rae-per-frame" else n
+        label, _, folder = n.partition("=")
+        base = "rae" if label == "rae-per-frame" or folder else label.removesuffix("+taa")
         if get(base).requirements() is not None:
             print(f"skipping {n}: {get(base).requirements()}")
             continue
-        fns[n] = load(base, args.weights if base == "rae" else None)
+        fns[label] = load(base, folder or (args.weights if base == "rae" else None))
     res: dict = {"data": args.data, "sequences": [str(s.folder) for s in seqs], "rows": [], "masks": args.masks}
     for seq in seqs:
         by_spp = [renders_by_spp(s) for s in seq.shots]
@@ -73,6 +105,8 @@ def main() -> None:
                         outs = np.stack([np.asarray(fn(f)) for f in frames])
                     else:
                         outs = np.stack([np.asarray(o) for o in fn.sequence(frames)])
+                    if n.endswith("+taa"):
+                        outs = with_taa(outs, frames, taa)
                 except BuffersError as e:  # e.g. lbf at 1 spp: no variance can be estimated from one sample
                     res.setdefault("not_run", []).append({"sequence": seq.folder.name, "spp": spp, "method": n,
                                                           "reason": str(e)})

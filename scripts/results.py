@@ -326,8 +326,10 @@ def rae_frames(results: Path, rel: str, methods: list[str]) -> str:
 # the procedural fly-throughs (the paper-recipe weights, then registered as rae)
 bind("rae-temporal-means", rae_temporal_means, "rae_temporal.json", ["input", "oidn", "rae", "rae-per-frame"])
 # issue 34: the scene library's evaluation fly-throughs, the rate-general rae against the paper's recipe
-bind("rae-rates-temporal", rae_temporal_means, "rae_rates/temporal.json", ["input", "oidn", "rae-paper", "rae"])
-bind("rae-rates-frames", rae_frames, "rae_rates/temporal.json", ["oidn", "rae-paper", "rae", "rae-per-frame"])
+bind("rae-rates-temporal", rae_temporal_means, "rae_rates/temporal.json",
+     ["input", "oidn", "oidn+taa", "rae-paper", "rae-0.9.15", "rae"])
+bind("rae-rates-frames", rae_frames, "rae_rates/temporal.json",
+     ["oidn", "oidn+taa", "rae-paper", "rae-0.9.15", "rae", "rae-per-frame"])
 
 
 @renderer("rae-outlier-clamp")
@@ -382,6 +384,25 @@ def _rae_exact_pixels(results: Path) -> str:
             "fly-throughs with the state carried), the pixels kept over its frames, and those kept whose input "
             "differs from the reference by more than 5 % in a channel. Chosen (bold): the lowest geometric mean over "
             f"every frame; off unless that beats off's. Weights `{d['init']}`. Command: `{d['command']}`.")
+
+
+@renderer("rae-taa")
+def _rae_taa(results: Path) -> str:
+    """Temporal anti-aliasing settings measured on the validation fly-throughs (experiments/rae_rates.py taa)."""
+    d = load(results, "rae_rates/taa.json")
+    spps = sorted(d["settings"]["off"]["per_spp"], key=int)
+    rows = [[("**" + k + "**" if k == d["chosen"] else k), num(r["score"], ".4g")]
+            + [f"{num(r['per_spp'][x]['relmse'], '.4g')} / {num(r['per_spp'][x]['temporal'], '.4g')}" for x in spps]
+            for k, r in d["settings"].items()]
+    return (table(["setting", "score", *(f"{x} spp: RelMSE / temporal error" for x in spps)], rows,
+                  "lr" + "r" * len(spps))
+            + "\n\nSettings: off, or aA wW tT = `taa_alpha` A (history capped at 1 / A frames), the clamp's "
+            "W x W neighbourhood (0: no clamp), the tangent-plane tolerance T (a fraction of the depth; 0: no "
+            "geometric test). Per rate: the means over the validation fly-throughs (state carried) of their frames' "
+            "mean RelMSE and of their temporal error. Score: the geometric mean over fly-throughs and rates of "
+            "sqrt(RelMSE x temporal error). Chosen (bold): the lowest score among the settings whose RelMSE at every "
+            f"rate is at most off's; off unless that beats off's. {d['sequences']} sequences from "
+            f"{', '.join(f'`{x}`' for x in d['folders'])}; weights `{d['init']}`. Command: `{d['command']}`.")
 
 
 @renderer("rae-input-arms")

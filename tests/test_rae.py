@@ -42,7 +42,8 @@ def _frame(h, w, seed=0, camera=None):
 def test_needs_and_the_paper_network():
     paper = get("rae-paper")
     assert paper.needs() == {"color", "albedo", "normal", "position", "roughness", "world_to_camera"}
-    assert get("rae").needs() == paper.needs() | {"spp", "color_var"}  # the rate channel, exact pixels (issue 34)
+    # the rate channel, exact pixels (issue 34), the camera TAA reprojects through (Sec. 5.4)
+    assert get("rae").needs() == paper.needs() | {"spp", "color_var", "world_to_ndc"}
     assert get("rae").temporal == "causal" and paper.temporal == "causal"
     p = rae.init(jax.random.PRNGKey(0), paper.config)
     kernels = [x for x in jax.tree_util.tree_leaves(p) if x.ndim == 4]
@@ -391,3 +392,39 @@ def test_rate_channel_and_linear_input():
     np.testing.assert_allclose(np.asarray(rae.inputs(fr, TINY))[..., :3], demod ** 0.2, rtol=1e-5)
     with pytest.raises(Exception, match="input_transform"):
         rae.needs(rae.Config(input_transform="log"))
+
+
+def test_taa_setting():
+    """``taa_alpha`` (`jaxdenoise.filters.taa_step`): the state carries the TAA history beside the
+    recurrent one; each frame is the network's output without TAA passed through `taa_step` with the
+    same settings, the first frame (and `apply`) unchanged; `needs` adds what reprojection reads; bad
+    settings are refused by their config names."""
+    from jaxdenoise.filters import taa_init, taa_step
+
+    on = dataclasses.replace(TINY, taa_alpha=0.25, taa_window=3, taa_tolerance=0.05)
+    assert {"position", "normal", "world_to_ndc"} <= rae.needs(on) & rae.required(on)
+    assert "world_to_ndc" not in rae.needs(TINY)
+    p = rae.init(jax.random.PRNGKey(4), TINY)
+    cam = np.eye(4, dtype=np.float32)
+    cam[2, 2], cam[3, 2], cam[3, 3] = 0.0, 1.0, 0.0  # a pinhole: w = z
+    frames = []
+    for s in range(3):
+        f = _frame(16, 12, seed=s)
+        pos = np.asarray(f.position).copy()
+        pos[..., 2] = np.abs(pos[..., 2]) + 2.0  # in front of the camera
+        frames.append(f.replace(position=pos, world_to_ndc=cam + np.float32(0.01 * s)))
+    s_off, s_on, taa = rae.init_state(frames[0], TINY), rae.init_state(frames[0], on), taa_init((16, 12, 3))
+    assert len(s_on) == len(s_off) + 1
+    for k, f in enumerate(frames):
+        s_off, plain = rae.step(p, s_off, f, TINY)
+        s_on, out = rae.step(p, s_on, f, on)
+        taa, want = taa_step(taa, plain, f.position, f.normal, f.world_to_ndc, alpha=0.25, window=3, tolerance=0.05)
+        np.testing.assert_allclose(np.asarray(out), np.asarray(want), rtol=1e-6, atol=1e-7)
+        if k == 0:
+            np.testing.assert_array_equal(np.asarray(out), np.asarray(plain))
+        for a, b in zip(s_off, s_on[:-1]):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert not np.allclose(np.asarray(out), np.asarray(plain), rtol=1e-3)  # history was blended in
+    np.testing.assert_array_equal(np.asarray(rae.apply(p, frames[2], on)), np.asarray(rae.apply(p, frames[2], TINY)))
+    with pytest.raises(ValueError, match="config.taa_window"):
+        rae.num_params(dataclasses.replace(on, taa_window=4))

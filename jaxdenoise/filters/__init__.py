@@ -8,7 +8,9 @@ network's input or output, `clamp_outliers`, `match_level` and `match_to_input`,
 arrays with any leading axes and static scalar parameters instead (no per-pixel maps, no parameter
 gradients); `check_match_settings` refuses a network config's settings for `match_to_input`.
 `exact_mask` (a boolean mask, not a filter) says where a frame's estimate is exact, for a denoiser to keep
-its input there; `check_exact_window` refuses a config's window for it.
+its input there; `check_exact_window` refuses a config's window for it. `taa_step` (with `taa_init`,
+`reproject`, `TaaState`, `check_taa_settings`) is temporal anti-aliasing over a sequence's outputs: a
+state carried from frame to frame, not a filter of one image.
 """
 from ._common import FilterError
 from .bilateral import (DELTA, ZETA, bilateral, cross_bilateral, drop_constant_features,
@@ -18,14 +20,17 @@ from .gaussian import gaussian, gaussian_kernel_1d
 from .level import check_match_settings, match_level, match_to_input
 from .nlm import cross_nlm, prefilter_features
 from .spikes import clamp_outliers, remove_spikes
+from .taa import TaaState, check_taa_settings, hdr_weight, reproject, taa_init, taa_step
 
 __all__ = [
     "DELTA",
     "FilterError",
+    "TaaState",
     "ZETA",
     "bilateral",
     "check_exact_window",
     "check_match_settings",
+    "check_taa_settings",
     "clamp_outliers",
     "cross_bilateral",
     "cross_nlm",
@@ -33,9 +38,13 @@ __all__ = [
     "exact_mask",
     "gaussian",
     "gaussian_kernel_1d",
+    "hdr_weight",
     "match_level",
     "match_to_input",
     "prefilter_features",
     "remove_spikes",
+    "reproject",
     "spatiotemporal_cross_bilateral",
+    "taa_init",
+    "taa_step",
 ]

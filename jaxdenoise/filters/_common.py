@@ -34,7 +34,7 @@ def as_image(x: Any, name: str, *, hw: tuple[int, int] | None = None, channels: 
         raise FilterError(f"argument '{name}' has pixel grid {shape[:2]}; expected {tuple(hw)} like the image")
     if channels is not None and shape[2] != channels:
         raise FilterError(f"argument '{name}' has {shape[2]} channel(s); expected {channels}")
-    _check_finite(x, name)
+    require_finite(x, name)
     return jnp.asarray(x)
 
 
@@ -48,7 +48,7 @@ def as_param(x: Any, name: str, hw: tuple[int, int], *, nonneg: bool = True) -> 
     shape = tuple(np.shape(x))
     if shape not in ((), tuple(hw), tuple(hw) + (1,)):
         raise FilterError(f"argument '{name}' has shape {shape}; expected a scalar, {tuple(hw)} or {tuple(hw) + (1,)}")
-    _check_finite(x, name)
+    require_finite(x, name)
     if nonneg and is_concrete(x) and np.any(np.asarray(x) < 0):
         raise FilterError(f"argument '{name}' has negative values (min {float(np.min(np.asarray(x)))}); "
                           "bandwidth parameters must be >= 0")
@@ -64,7 +64,8 @@ def check_radius(radius: Any, name: str = "radius") -> int:
     return int(radius)
 
 
-def _check_finite(x: Any, name: str) -> None:
+def require_finite(x: Any, name: str) -> None:
+    """Raise a `FilterError` naming ``name`` if ``x`` is concrete and holds a NaN/Inf (traced: nothing)."""
     if not is_concrete(x):
         return
     a = np.asarray(x)

@@ -58,7 +58,8 @@ import numpy as np
 from .. import color, metrics, nn, view
 from ..buffers import SAMPLE_COUNT_FIELD, Buffers
 from ..errors import JaxdenoiseError
-from ..filters import check_exact_window, check_match_settings, clamp_outliers, exact_mask, match_to_input
+from ..filters import (check_exact_window, check_match_settings, check_taa_settings, clamp_outliers, exact_mask,
+                       match_to_input, taa_init, taa_step)
 from ..pipeline import carried_stat, carried_stats
 
 __all__ = ["Config", "needs", "required", "init", "apply", "init_state", "step", "loss", "run_sequence", "inputs",
@@ -129,6 +130,18 @@ class Config:
     # recurrent state is not touched; inference only.
     keep_exact: bool = dataclasses.field(default=False, metadata={"fine_tune": True})
     exact_window: int = dataclasses.field(default=0, metadata={"fine_tune": True})
+    # Temporal anti-aliasing (Sec. 5.4: "we apply TAA as a supplemental post-process pass to all
+    # methods. Our method also benefits from TAA"; its settings are not given, ours: docs/methods/rae.md
+    # "Temporal anti-aliasing"): with `taa_alpha` > 0 each output frame of a sequence is blended with the
+    # previous frames' result reprojected through the world positions and the cameras
+    # (`jaxdenoise.filters.taa_step`: a running mean capped at 1 / `taa_alpha` frames, colours weighted
+    # by Karis's 1 / (1 + luminance / the frame's level), the history clamped to the frame's `taa_window`
+    # x `taa_window` neighbourhood, and with `taa_tolerance` > 0 taps off the pixel's tangent plane by
+    # more than that fraction of the depth dropped), after the level match; exact pixels are kept after
+    # it. Carried in the state beside the recurrent one; a single frame (`apply`) is unchanged.
+    taa_alpha: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})
+    taa_window: int = dataclasses.field(default=3, metadata={"fine_tune": True})
+    taa_tolerance: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})
     # The training recipe the weights folder is named after: "" (the default weights) or "paper"
     # (Sec. 5.3: 1-spp fly-throughs, the paper's input; registered as "rae-paper").
     recipe: str = dataclasses.field(default="", metadata={"training": True})
@@ -183,6 +196,8 @@ def _check(config: Config) -> None:
         raise JaxdenoiseError(f"rae: config.match_level needs exposure 'frame' (the frame's level sets the cut's "
                               f"floor), got match_level {config.match_level} with {config.exposure!r}")
     check_exact_window("rae: config.exact_window", config.exact_window)
+    if config.taa_alpha:
+        check_taa_settings("rae: config.", config.taa_alpha, config.taa_window, config.taa_tolerance)
     if not config.level_weight >= 0 or int(config.level_pool) < 1 or not config.level_eps > 0:
         raise JaxdenoiseError(f"rae: config.level_weight must be >= 0, config.level_pool >= 1 and config.level_eps "
                               f"> 0, got {config.level_weight!r}, {config.level_pool!r} and {config.level_eps!r}")
@@ -206,6 +221,8 @@ def needs(config: Config) -> frozenset[str]:
         out.add("spp")
     if config.keep_exact:
         out.add("color_var")
+    if config.taa_alpha:
+        out |= {"position", "normal", "world_to_ndc"}
     return frozenset(out)
 
 
@@ -417,19 +434,21 @@ def _output(y: jax.Array, albedo: Any, scale: Any, config: Config) -> jax.Array:
 
 def init_state(buffers: Buffers, config: Config) -> tuple:
     """Zero hidden states of the six recurrent blocks for frames of ``buffers``' size (a `Buffers` or a
-    dict frame)."""
+    dict frame), and with ``taa_alpha`` the TAA history (`jaxdenoise.filters.taa_init`: none yet) last."""
     shape = tuple(np.shape(_get(buffers, "color")))
-    return tuple(jnp.zeros(s, jnp.float32) for s in _state_shapes(config, shape[:-3], shape[-3], shape[-2]))
+    hidden = tuple(jnp.zeros(s, jnp.float32) for s in _state_shapes(config, shape[:-3], shape[-3], shape[-2]))
+    return hidden + (taa_init(shape[:-1] + (3,)),) if config.taa_alpha else hidden
 
 
 def step(params: dict, state: tuple, buffers: Buffers, config: Config) -> tuple[tuple, jax.Array]:
     """Denoise the next frame of a sequence; returns the new state and the HDR image."""
     scale = exposure_scale(buffers, config)
     x, size = nn.pad_to_multiple(inputs(buffers, config, scale), 32)
-    state, y = _forward(params, x, state, config)
+    hidden, taa = (state[:-1], state[-1]) if config.taa_alpha else (state, None)
+    hidden, y = _forward(params, x, hidden, config)
     out = jnp.maximum(_output(nn.crop_to(y, size), _get(buffers, "albedo"), scale, config), 0.0)
     c = color.radiance(_get(buffers, "color"))
-    if config.keep_exact:  # exact pixels kept before the level match and after it
+    if config.keep_exact:  # exact pixels kept before the level match and after it (and after TAA)
         exact = exact_mask(_get(buffers, "color"), _get(buffers, "color_var", optional=True),
                            _get(buffers, "spp", optional=True), window=config.exact_window)
         out = jnp.where(exact, c, out)
@@ -439,11 +458,16 @@ def step(params: dict, state: tuple, buffers: Buffers, config: Config) -> tuple[
                              floor=color.EXPOSURE_LEVEL, max_gain=config.match_max_gain or float("inf"),
                              spp=spp) / scale
         out = jnp.where(exact, c, out) if config.keep_exact else out
-    return state, out
+    if not config.taa_alpha:
+        return hidden, out
+    taa, out = taa_step(taa, out, _get(buffers, "position"), _get(buffers, "normal"), _get(buffers, "world_to_ndc"),
+                        alpha=config.taa_alpha, window=config.taa_window, tolerance=config.taa_tolerance)
+    return hidden + (taa,), (jnp.where(exact, c, out) if config.keep_exact else out)
 
 
 def apply(params: dict, buffers: Buffers, config: Config) -> jax.Array:
-    """A single frame (or a batch of independent frames): the first step from a zero state."""
+    """A single frame (or a batch of independent frames): the first step from a zero state (no TAA
+    history, so TAA leaves it as it is)."""
     return step(params, init_state(buffers, config), buffers, config)[1]
 
 

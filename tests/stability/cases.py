@@ -432,6 +432,14 @@ def _filters_mod():
     return filters
 
 
+def _taa(b: Buffers, p):
+    """Two TAA steps under one camera (world = NDC): a history made from half the colour, then the
+    colour; ``alpha = 1 / (1 + p)`` (p 0: no history; p inf: alpha 0, refused)."""
+    f, cam, alpha = _filters_mod(), np.eye(4, dtype=np.float32), 1.0 / (1.0 + p)
+    state, _ = f.taa_step(f.taa_init(np.shape(b.color)), 0.5 * b.color, b.position, b.normal, cam, alpha=alpha)
+    return f.taa_step(state, b.color, b.position, b.normal, cam, alpha=alpha)[1]
+
+
 def _prefiltered(b: Buffers, p):
     f, v = _filters_mod().prefilter_features(b.position, b.position_var, radius=RADIUS, patch_radius=1, lam=p)
     return jnp.concatenate([f, v], -1)
@@ -478,11 +486,15 @@ FILTERS: dict[str, FilterSpec] = {
         lambda b, p: _filters_mod().match_to_input(b.albedo, b.color, p, spike=2.0, floor=0.2, max_gain=1.1),
         frozenset({"color", "albedo"}), ("sigma",), static_param=True, convex=False, source=lambda b: b.albedo,
         grad_field="albedo"),
+    # the history is clamped to the frame's 3x3 range, then blended with the frame: convex
+    "taa_step": FilterSpec(_taa, frozenset({"color", "position", "normal"}), ("alpha",), static_param=True),
 }
 # Public names of jaxdenoise.filters that are not image filters (helpers and the error type; `exact_mask`
-# returns a boolean mask by exact comparisons: nothing to overflow, no parameter, no gradient).
+# returns a boolean mask by exact comparisons: nothing to overflow, no parameter, no gradient; `taa_init`,
+# `reproject`, `TaaState`, `hdr_weight` and `check_taa_settings` are the parts of `taa_step`, which has its entry).
 FILTER_HELPERS = frozenset({"FilterError", "gaussian_kernel_1d", "drop_constant_features", "DELTA", "ZETA",
-                            "check_match_settings", "check_exact_window", "exact_mask"})
+                            "check_match_settings", "check_exact_window", "exact_mask", "check_taa_settings",
+                            "taa_init", "reproject", "TaaState", "hdr_weight"})
 
 
 def public_filters() -> list[str]:

@@ -1,0 +1,219 @@
+"""Temporal anti-aliasing (TAA) of a denoised sequence: each frame's output blended with the previous
+frames' result reprojected through the scene's geometry (Karis 2014, "High quality temporal
+supersampling"). Chaitanya et al. 2017 (Sec. 5.4, "Temporal antialiasing ... we apply TAA as a
+supplemental post-process pass to all methods. Our method also benefits from TAA because the
+recurrent loops at finer resolutions have insufficient temporal receptive field to reproject the
+high-frequency features") evaluate every method so; the paper gives no TAA parameters (ours,
+docs/methods/rae.md "Temporal anti-aliasing").
+
+``taa_init(shape) -> TaaState``; ``taa_step(state, current, position, normal, world_to_ndc, *, alpha,
+window, tolerance) -> (state, out)``; ``reproject(state, position, normal) -> (image, count, valid)``;
+``check_taa_settings(owner, alpha, window, tolerance)``.
+
+One step, for the frame ``t`` whose denoised output is ``current`` ``(H, W, C)``:
+
+1. **Reproject**: every pixel's world ``position`` (a surface hit: ``normal`` non-zero) goes through
+   the previous frame's ``world_to_ndc`` (`jaxdenoise.view` conventions: NDC ``x`` left to right,
+   ``y`` bottom to top, in [-1, 1]) to a point of the previous frame's pixel grid, and the previous
+   result is read there bilinearly. A tap counts only if it lies in the frame and hit a surface and,
+   with ``tolerance`` > 0, its world position lies within ``tolerance`` times the point's depth in
+   the previous camera (its ``w``) of the pixel's tangent plane (the distance along the pixel's
+   normal: a neighbour on the same surface passes at any angle, a disocclusion or a tap across a
+   silhouette fails). The taps that pass are renormalised; below half a tap's weight in all, the
+   pixel has no history. ``tolerance`` 0 leaves the rejection to the clamp (Karis 2014).
+2. **Clamp** (``window`` > 0, Karis 2014 Sec. "Clamping"): the reprojected colour is clipped per
+   channel to the minimum and maximum of ``current`` over the pixel's ``window`` x ``window``
+   neighbourhood (the border repeated), which limits ghosting where the shading changed (a moving
+   highlight) at the price of keeping less history. 0: no clamp.
+3. **Blend**: ``out = (w_c current + w_h history) / (w_c + w_h)`` with ``w_c = s(current) / n`` and
+   ``w_h = s(history) (1 - 1 / n)``, ``n`` the pixel's history length plus one, capped at ``1 /
+   alpha``: a running mean over the first frames, then an exponential one of weight ``alpha`` (Karis
+   blends at a fixed ``alpha``; the running start makes a short sequence's first frames count). A
+   pixel without history (no hit, a failed reprojection, the first frame) takes ``current``, ``n = 1``.
+
+**HDR** (Karis 2014, "weigh by the inverse of luminance"): ``s(x) = 1 / (1 + luminance(x) / knee)``
+(`hdr_weight`) weighs every colour in the bilinear read and the blend, with ``knee`` the frame's
+exposure level (`jaxdenoise.color.exposure_level` of ``current``, constant in the gradient; a black
+frame, level <= 1e-12, weighs every colour 1). Without it a light's pixel read
+into a neighbour's history by one bilinear tap, or let through by a clamp whose neighbourhood holds
+the light, brightens a dark surface by orders of magnitude (measured: docs/methods/rae.md).
+
+Every output is a convex combination of ``current`` and reprojected previous results, and the
+knee scales with the frame, so ``taa(k x) = k taa(x)`` for ``k > 0`` (up to rounding): an
+exposure-normalised method stays so. The state is a pytree (`TaaState`): the last result, its positions, hit mask, camera and
+history lengths. Static settings (``alpha``, ``window``, ``tolerance``) are keyword-only and
+checked by `check_taa_settings`; no parameter gradients.
+"""
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..color import exposure_level, luminance
+from ._common import FilterError, require_finite
+
+
+class TaaState(NamedTuple):
+    """What `taa_step` carries from one frame to the next (a pytree; ``count`` 0 = no history)."""
+
+    image: jax.Array  # (H, W, C) the last result
+    position: jax.Array  # (H, W, 3) its world positions
+    hit: jax.Array  # (H, W, 1) float 0 / 1: its pixels that hit a surface
+    world_to_ndc: jax.Array  # (4, 4) its camera
+    count: jax.Array  # (H, W, 1) its history lengths (frames blended), 0 before the first frame
+
+
+def _check_settings(alpha: Any, window: Any, tolerance: Any, names: tuple[str, str, str]) -> None:
+    if not (isinstance(alpha, (int, float, np.floating)) and 0 < alpha <= 1):
+        raise FilterError(f"{names[0]} must be in (0, 1] (1: no history kept), got {alpha!r}")
+    if not (isinstance(window, (int, np.integer)) and not isinstance(window, bool)
+            and (window == 0 or window >= 3 and window % 2)):
+        raise FilterError(f"{names[1]} must be 0 (no clamp) or an odd number of pixels >= 3, got {window!r}")
+    if not (isinstance(tolerance, (int, float, np.floating)) and np.isfinite(tolerance) and tolerance >= 0):
+        raise FilterError(f"{names[2]} must be a finite number >= 0 (a fraction of the depth; 0: no geometric "
+                          f"test), got {tolerance!r}")
+
+
+def check_taa_settings(owner: str, alpha: Any, window: Any, tolerance: Any) -> None:
+    """Refuse, naming ``owner`` (e.g. ``"rae: config."``) and its ``taa_alpha`` / ``taa_window`` /
+    ``taa_tolerance``, settings `taa_step` cannot take."""
+    _check_settings(alpha, window, tolerance, (f"{owner}taa_alpha", f"{owner}taa_window", f"{owner}taa_tolerance"))
+
+
+def taa_init(shape: tuple[int, ...]) -> TaaState:
+    """The state before the first frame, for frames of ``shape`` ``(..., H, W, C)`` (leading axes: a
+    batch of independent sequences)."""
+    if len(shape) < 3:
+        raise FilterError(f"taa_init: expected a frame's shape (..., H, W, C), got {tuple(shape)}")
+    *lead, h, w, c = (int(s) for s in shape)
+    lead = tuple(lead)
+    return TaaState(jnp.zeros(lead + (h, w, c), jnp.float32), jnp.zeros(lead + (h, w, 3), jnp.float32),
+                    jnp.zeros(lead + (h, w, 1), jnp.float32),
+                    jnp.broadcast_to(jnp.eye(4, dtype=jnp.float32), lead + (4, 4)),
+                    jnp.zeros(lead + (h, w, 1), jnp.float32))
+
+
+def _frame(name: str, a: Any, channels: int | None = None) -> jax.Array:
+    a = jnp.asarray(a, jnp.float32)
+    if a.ndim != 3 or (channels is not None and a.shape[-1] != channels):
+        want = f"(H, W, {channels})" if channels else "(H, W, C)"
+        raise FilterError(f"taa: argument '{name}' has shape {tuple(a.shape)}; expected one frame {want}")
+    return a
+
+
+def reproject(state: TaaState, position: Any, normal: Any, *, tolerance: float = 0.0, knee: Any = None
+              ) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """``state``'s result and history lengths read at where this frame's surface points were in the
+    previous frame (step 1 of the module docstring): ``(image (H, W, C), count (H, W, 1), valid
+    (H, W, 1) bool)``; image and count are 0 where not valid. With ``knee`` (a luminance), each tap's
+    colour is weighted by `hdr_weight` as well (the history lengths are not)."""
+    p = _frame("position", position, 3)
+    n = _frame("normal", normal, 3)
+    h, w, _ = p.shape
+    if state.image.shape[:2] != (h, w):
+        raise FilterError(f"taa: the frame is {h}x{w} but the carried history is "
+                          f"{state.image.shape[0]}x{state.image.shape[1]}")
+    hit = jnp.sum(n * n, axis=-1) > 0
+    unit = n / jnp.maximum(jnp.sqrt(jnp.sum(n * n, axis=-1, keepdims=True)), 1e-12)
+    m = jnp.asarray(state.world_to_ndc, jnp.float32)
+    q = jnp.einsum("ij,hwj->hwi", m[:, :3], p) + m[:, 3]
+    depth = q[..., 3]
+    ok = hit & (depth > 0)
+    safe = jnp.where(ok, depth, 1.0)
+    col = (q[..., 0] / safe + 1.0) * 0.5 * w - 0.5
+    row = (1.0 - q[..., 1] / safe) * 0.5 * h - 0.5
+    ok = ok & (col > -1) & (col < w) & (row > -1) & (row < h)
+    col, row = jnp.where(ok, col, 0.0), jnp.where(ok, row, 0.0)
+    c0, r0 = jnp.floor(col), jnp.floor(row)
+    fx, fy = col - c0, row - r0
+    c0, r0 = c0.astype(jnp.int32), r0.astype(jnp.int32)
+    flat = lambda a: a.reshape(h * w, a.shape[-1])  # noqa: E731
+    img, pos, was_hit, cnt = (flat(state.image), flat(state.position), flat(state.hit), flat(state.count))
+    total = jnp.zeros((h, w), jnp.float32)
+    acc = jnp.zeros(state.image.shape, jnp.float32)
+    acc_w = jnp.zeros((h, w, 1), jnp.float32)
+    acc_n = jnp.zeros((h, w), jnp.float32)
+    for dr, dc, wt in ((0, 0, (1 - fy) * (1 - fx)), (0, 1, (1 - fy) * fx), (1, 0, fy * (1 - fx)), (1, 1, fy * fx)):
+        r, c = r0 + dr, c0 + dc
+        inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+        idx = jnp.clip(r, 0, h - 1) * w + jnp.clip(c, 0, w - 1)
+        tap_pos = jnp.take(pos, idx, axis=0)
+        near = (jnp.abs(jnp.sum(unit * (tap_pos - p), axis=-1)) <= tolerance * depth) if tolerance else True
+        good = ok & inside & (jnp.take(was_hit, idx, axis=0)[..., 0] > 0) & near
+        wt = jnp.where(good, wt, 0.0)
+        total = total + wt
+        tap = jnp.take(img, idx, axis=0)
+        wc = wt[..., None] * (1.0 if knee is None else hdr_weight(tap, knee))
+        acc, acc_w = acc + wc * tap, acc_w + wc
+        acc_n = acc_n + wt * jnp.take(cnt, idx, axis=0)[..., 0]
+    valid = total >= 0.5
+    norm = jnp.where(valid, total, 1.0)
+    image = jnp.where(valid[..., None], acc / jnp.where(valid[..., None], acc_w, 1.0), 0.0)
+    count = jnp.where(valid, jnp.round(acc_n / norm), 0.0)[..., None]
+    return image, count, valid[..., None] & (count > 0)
+
+
+def hdr_weight(x: jax.Array, knee: Any) -> jax.Array:
+    """Karis 2014's weight of an HDR colour in a blend, ``1 / (1 + luminance / knee)`` ``(..., 1)``: a
+    sample far brighter than the knee (a light, a firefly) counts little against darker ones, so a
+    blend of a few cannot spread it; at luminance 0 the weight is 1."""
+    return 1.0 / (1.0 + luminance(jnp.maximum(x, 0.0))[..., None] / knee)
+
+
+def _neighbourhood(x: jax.Array, window: int) -> tuple[jax.Array, jax.Array]:
+    r = window // 2
+    xp = jnp.pad(x, ((r, r), (r, r), (0, 0)), mode="edge")
+    dims, strides = (window, window, 1), (1, 1, 1)
+    lo = jax.lax.reduce_window(xp, jnp.inf, jax.lax.min, dims, strides, "VALID")
+    hi = jax.lax.reduce_window(xp, -jnp.inf, jax.lax.max, dims, strides, "VALID")
+    return lo, hi
+
+
+def taa_step(state: TaaState, current: Any, position: Any, normal: Any, world_to_ndc: Any, *,
+             alpha: float = 0.25, window: int = 3, tolerance: float = 0.0) -> tuple[TaaState, jax.Array]:
+    """One frame of TAA (module docstring): ``current`` ``(H, W, C)`` blended with ``state``'s
+    reprojected result; returns the new state and the frame's result. Leading axes (``(..., H, W,
+    C)``, with ``world_to_ndc`` ``(4, 4)`` or ``(..., 4, 4)`` and a state from `taa_init` of the same
+    shape) are independent sequences."""
+    _check_settings(alpha, window, tolerance, ("argument 'alpha'", "argument 'window'", "argument 'tolerance'"))
+    for name, a in (("current", current), ("position", position), ("normal", normal), ("world_to_ndc", world_to_ndc)):
+        if a is None:
+            raise FilterError(f"taa: argument '{name}' is None; TAA reprojects through the world positions, "
+                              f"normals and camera of every frame")
+        require_finite(a, name)
+    x = jnp.asarray(current, jnp.float32)
+    if x.ndim > 3:
+        lead = x.shape[:-3]
+        m = jnp.broadcast_to(jnp.asarray(world_to_ndc, jnp.float32), lead + (4, 4))
+        flat = lambda a: a.reshape((-1,) + a.shape[len(lead):])  # noqa: E731
+        one = lambda st, *a: taa_step(st, *a, alpha=alpha, window=window, tolerance=tolerance)  # noqa: E731
+        st, out = jax.vmap(one)(jax.tree_util.tree_map(flat, state), flat(x),
+                                flat(jnp.asarray(position, jnp.float32)), flat(jnp.asarray(normal, jnp.float32)),
+                                flat(m))
+        return jax.tree_util.tree_map(lambda a: a.reshape(lead + a.shape[1:]), st), out.reshape(x.shape)
+    x = _frame("current", x)
+    if state.image.shape != x.shape:
+        raise FilterError(f"taa: the frame has shape {tuple(x.shape)} but the carried history "
+                          f"{tuple(state.image.shape)}")
+    p = _frame("position", position, 3)
+    n = _frame("normal", normal, 3)
+    m = jnp.asarray(world_to_ndc, jnp.float32)
+    if m.shape != (4, 4):
+        raise FilterError(f"taa: argument 'world_to_ndc' has shape {tuple(m.shape)}; expected (4, 4)")
+    level = jax.lax.stop_gradient(exposure_level(x))  # a frame statistic, as `color.exposure_scale` holds it
+    knee = jnp.where(level > 1e-12, level, jnp.inf)  # a black frame: no weighting (every weight 1)
+    hist, count, valid = reproject(state, p, n, tolerance=tolerance, knee=knee)
+    if window:
+        lo, hi = _neighbourhood(x, window)
+        hist = jnp.clip(hist, lo, hi)
+    length = jnp.where(valid, jnp.minimum(count + 1.0, 1.0 / alpha), 1.0)
+    wx, wh = hdr_weight(x, knee) / length, hdr_weight(hist, knee) * (1.0 - 1.0 / length)
+    out = jnp.where(valid, (wx * x + wh * hist) / (wx + wh), x)
+    hit = (jnp.sum(n * n, axis=-1, keepdims=True) > 0).astype(jnp.float32)
+    return TaaState(out, p, hit, m, length), out
+
+
+__all__ = ["TaaState", "check_taa_settings", "hdr_weight", "reproject", "taa_init", "taa_step"]
