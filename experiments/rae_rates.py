@@ -66,9 +66,12 @@ and those that are not exact (a channel more than 5 % from the reference's). Wri
 ``--init``, no training: off and every combination of ``--alphas`` x ``--taa-windows`` x
 ``--tolerances``, each run over the validation fly-throughs of ``--val-data`` and ``--taa-data``
 (state carried, the sequence driver) and scored per sequence and rate by the mean RelMSE of its
-frames and its temporal error (`jaxdenoise.metrics.temporal_error`). The rule: among the settings
-whose mean RelMSE at every rate is at most off's, the lowest geometric mean over sequences and rates
-of sqrt(RelMSE x temporal error); off unless that beats off's. Written to ``OUT/taa.json``:
+frames and its temporal error (`jaxdenoise.metrics.temporal_error`), and per rate by the colour level
+of its frames after the first (`demc_levels.frame_levels` over every lit pixel: per channel, the
+median over those frames). The rule: among the settings whose mean RelMSE at every rate is at most
+off's and whose level (every rate and channel) is at most ``--level-slack`` further from 1 than off's,
+the lowest geometric mean over sequences and rates of sqrt(RelMSE x temporal error); off unless that
+beats off's. Written to ``OUT/taa.json``:
 
     python experiments/rae_rates.py taa --init jaxdenoise/weights/rae --out docs/results/rae_rates
 
@@ -259,6 +262,7 @@ def choose_exact(args) -> dict:
 def choose_taa(args) -> dict:
     """The ``taa`` subcommand (module docstring): RelMSE and temporal error of each TAA setting of the
     weights in ``--init`` on the validation fly-throughs, then the rule."""
+    from demc_levels import frame_levels
     from jaxdenoise import metrics
     from jaxdenoise.api import resolve
     from jaxdenoise.sequence import run_all
@@ -272,9 +276,11 @@ def choose_taa(args) -> dict:
         raise SystemExit(f"taa: no validation fly-through in {folders}")
     settings = {"off": {"taa_alpha": 0.0}}
     settings |= {f"a{a:g} w{w} t{t:g}": {"taa_alpha": a, "taa_window": w, "taa_tolerance": t}
-                 for a in (float(x) for x in args.alphas.split(",")) for w in (int(x) for x in args.taa_windows.split(","))
+                 for a in (float(x) for x in args.alphas.split(","))
+                 for w in (int(x) for x in args.taa_windows.split(","))
                  for t in (float(x) for x in args.tolerances.split(","))}
-    res = {"init": args.init, "folders": folders, "sequences": len(seqs), "settings": {}}
+    res = {"init": args.init, "folders": folders, "sequences": len(seqs), "level_slack": args.level_slack,
+           "settings": {}}
     for label, over in settings.items():
         m = base.with_config(**over)
         rows = []
@@ -282,15 +288,22 @@ def choose_taa(args) -> dict:
             outs, refs = run_all(m, params, f["frames"]), np.stack(f["references"])
             rows.append({"folder": d, "spp": int(f["spp"]),
                          "relmse": float(np.mean([metrics.relmse(o, r) for o, r in zip(outs, refs)])),
-                         "temporal": float(metrics.temporal_error(outs, refs))})
-        per_spp = {str(s): {k: float(np.mean([r[k] for r in rows if r["spp"] == s])) for k in ("relmse", "temporal")}
+                         "temporal": float(metrics.temporal_error(outs, refs)),
+                         "levels": [frame_levels(o, r) for o, r in zip(outs[1:], refs[1:])]})
+        per_spp = {str(s): {"relmse": float(np.mean([r["relmse"] for r in rows if r["spp"] == s])),
+                            "temporal": float(np.mean([r["temporal"] for r in rows if r["spp"] == s])),
+                            "level": np.median([lv for r in rows if r["spp"] == s for lv in r["levels"]], 0).tolist()}
                    for s in sorted({r["spp"] for r in rows})}
         score = float(np.exp(np.mean([0.5 * (np.log(r["relmse"]) + np.log(r["temporal"])) for r in rows])))
         res["settings"][label] = {"config": over, "score": score, "per_spp": per_spp, "rows": rows}
         print(label, f"{score:.5f}", per_spp, flush=True)
     off = res["settings"]["off"]
+
+    def level_ok(r: dict) -> bool:
+        return all(abs(a - 1) <= abs(b - 1) + args.level_slack
+                   for s in off["per_spp"] for a, b in zip(r["per_spp"][s]["level"], off["per_spp"][s]["level"]))
     ok = [k for k, r in res["settings"].items()
-          if all(r["per_spp"][s]["relmse"] <= off["per_spp"][s]["relmse"] for s in off["per_spp"])]
+          if all(r["per_spp"][s]["relmse"] <= off["per_spp"][s]["relmse"] for s in off["per_spp"]) and level_ok(r)]
     best = min(ok, key=lambda k: res["settings"][k]["score"])
     res["chosen"] = best if res["settings"][best]["score"] < off["score"] else "off"
     res["command"] = " ".join(["python", "experiments/rae_rates.py", *sys.argv[1:]])
@@ -332,6 +345,9 @@ def main() -> None:
     ap.add_argument("--alphas", default="0.5,0.25,0.1", help="taa: blend weights (1 / the longest history)")
     ap.add_argument("--taa-windows", default="0,3", help="taa: clamp neighbourhoods (0: no clamp)")
     ap.add_argument("--tolerances", default="0,0.02,0.1", help="taa: tangent-plane tolerances (0: no test)")
+    ap.add_argument("--level-slack", type=float, default=0.02,
+                    help="taa: how much further from 1 than off's a chosen setting's level may be "
+                    "(every rate, channel)")
     ap.add_argument("--taa-data", default="data/rae_library_val2",
                     help="taa: more validation fly-throughs scored beside --val-data (comma list; '' for none)")
     args = ap.parse_args()

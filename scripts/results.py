@@ -392,16 +392,20 @@ def _rae_taa(results: Path) -> str:
     d = load(results, "rae_rates/taa.json")
     spps = sorted(d["settings"]["off"]["per_spp"], key=int)
     rows = [[("**" + k + "**" if k == d["chosen"] else k), num(r["score"], ".4g")]
-            + [f"{num(r['per_spp'][x]['relmse'], '.4g')} / {num(r['per_spp'][x]['temporal'], '.4g')}" for x in spps]
+            + [f"{num(r['per_spp'][x]['relmse'], '.4g')} / {num(r['per_spp'][x]['temporal'], '.4g')} / "
+               + "/".join(num(v, ".3f") for v in r["per_spp"][x]["level"]) for x in spps]
             for k, r in d["settings"].items()]
-    return (table(["setting", "score", *(f"{x} spp: RelMSE / temporal error" for x in spps)], rows,
+    return (table(["setting", "score", *(f"{x} spp: RelMSE / temporal error / level R/G/B" for x in spps)], rows,
                   "lr" + "r" * len(spps))
             + "\n\nSettings: off, or aA wW tT = `taa_alpha` A (history capped at 1 / A frames), the clamp's "
             "W x W neighbourhood (0: no clamp), the tangent-plane tolerance T (a fraction of the depth; 0: no "
             "geometric test). Per rate: the means over the validation fly-throughs (state carried) of their frames' "
-            "mean RelMSE and of their temporal error. Score: the geometric mean over fly-throughs and rates of "
-            "sqrt(RelMSE x temporal error). Chosen (bold): the lowest score among the settings whose RelMSE at every "
-            f"rate is at most off's; off unless that beats off's. {d['sequences']} sequences from "
+            "mean RelMSE and of their temporal error, and the colour level of their frames after the first (per "
+            "channel, the median over those frames of the median box-mean ratio over every lit pixel). Score: the "
+            "geometric mean over fly-throughs and rates of sqrt(RelMSE x temporal error). Chosen (bold): the lowest "
+            "score among the settings whose RelMSE at every rate is at most off's and whose level is at most "
+            f"{d['level_slack']:g} further from 1 than off's (every rate and channel); off unless that beats off's. "
+            f"{d['sequences']} sequences from "
             f"{', '.join(f'`{x}`' for x in d['folders'])}; weights `{d['init']}`. Command: `{d['command']}`.")
 
 

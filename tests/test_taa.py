@@ -91,7 +91,8 @@ def test_exposure_and_leading_axes():
     base = two(1.0)
     for k in (1 / 16, 16.0):
         np.testing.assert_allclose(two(k), k * base, rtol=1e-5, atol=1e-7)
-    s, _ = taa_step(taa_init((2, H, W, 3)), np.stack([a, b]), np.stack([pos, pos]), np.stack([nrm, nrm]), cam, alpha=0.2)
+    s, _ = taa_step(taa_init((2, H, W, 3)), np.stack([a, b]), np.stack([pos, pos]), np.stack([nrm, nrm]), cam,
+                    alpha=0.2)
     _, both = taa_step(s, np.stack([b, a]), np.stack([moved, moved]), np.stack([nrm, nrm]), cam, alpha=0.2)
     np.testing.assert_allclose(np.asarray(both)[0], base, rtol=1e-6)
 

@@ -7,8 +7,8 @@ high-frequency features") evaluate every method so; the paper gives no TAA param
 docs/methods/rae.md "Temporal anti-aliasing").
 
 ``taa_init(shape) -> TaaState``; ``taa_step(state, current, position, normal, world_to_ndc, *, alpha,
-window, tolerance) -> (state, out)``; ``reproject(state, position, normal) -> (image, count, valid)``;
-``check_taa_settings(owner, alpha, window, tolerance)``.
+window, tolerance) -> (state, out)``; ``reproject(state, position, normal, *, tolerance, knee) -> (image,
+count, valid)``; ``hdr_weight(x, knee)``; ``check_taa_settings(owner, alpha, window, tolerance)``.
 
 One step, for the frame ``t`` whose denoised output is ``current`` ``(H, W, C)``:
 
@@ -34,15 +34,17 @@ One step, for the frame ``t`` whose denoised output is ``current`` ``(H, W, C)``
 **HDR** (Karis 2014, "weigh by the inverse of luminance"): ``s(x) = 1 / (1 + luminance(x) / knee)``
 (`hdr_weight`) weighs every colour in the bilinear read and the blend, with ``knee`` the frame's
 exposure level (`jaxdenoise.color.exposure_level` of ``current``, constant in the gradient; a black
-frame, level <= 1e-12, weighs every colour 1). Without it a light's pixel read
-into a neighbour's history by one bilinear tap, or let through by a clamp whose neighbourhood holds
-the light, brightens a dark surface by orders of magnitude (measured: docs/methods/rae.md).
+frame, level <= 1e-12, weighs every colour 1). Without it a light's pixel read into a neighbour's
+history by one bilinear tap, or let through by a clamp whose neighbourhood holds the light, brightens
+a dark surface by orders of magnitude (measured: docs/methods/rae.md). The price: the weights favour
+darker colours, so a noisy sequence comes out a few percent darker (`rae` runs TAA before its level
+match, which puts the level back).
 
-Every output is a convex combination of ``current`` and reprojected previous results, and the
-knee scales with the frame, so ``taa(k x) = k taa(x)`` for ``k > 0`` (up to rounding): an
-exposure-normalised method stays so. The state is a pytree (`TaaState`): the last result, its positions, hit mask, camera and
-history lengths. Static settings (``alpha``, ``window``, ``tolerance``) are keyword-only and
-checked by `check_taa_settings`; no parameter gradients.
+Every output is a convex combination of ``current`` and reprojected previous results, and the knee
+scales with the frame, so ``taa(k x) = k taa(x)`` for ``k > 0`` (up to rounding): an exposure-
+normalised method stays so. The state is a pytree (`TaaState`): the last result, its positions, hit
+mask, camera and history lengths. Static settings (``alpha``, ``window``, ``tolerance``) are
+keyword-only and checked by `check_taa_settings`; no parameter gradients.
 """
 from __future__ import annotations
 

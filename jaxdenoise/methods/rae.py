@@ -137,8 +137,9 @@ class Config:
     # (`jaxdenoise.filters.taa_step`: a running mean capped at 1 / `taa_alpha` frames, colours weighted
     # by Karis's 1 / (1 + luminance / the frame's level), the history clamped to the frame's `taa_window`
     # x `taa_window` neighbourhood, and with `taa_tolerance` > 0 taps off the pixel's tangent plane by
-    # more than that fraction of the depth dropped), after the level match; exact pixels are kept after
-    # it. Carried in the state beside the recurrent one; a single frame (`apply`) is unchanged.
+    # more than that fraction of the depth dropped), before the level match (which puts the result at the
+    # input's level: the weights favour darker colours); the history carries TAA's result, not the match's.
+    # Carried in the state beside the recurrent one; a single frame (`apply`) is unchanged.
     taa_alpha: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})
     taa_window: int = dataclasses.field(default=3, metadata={"fine_tune": True})
     taa_tolerance: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})
@@ -448,21 +449,23 @@ def step(params: dict, state: tuple, buffers: Buffers, config: Config) -> tuple[
     hidden, y = _forward(params, x, hidden, config)
     out = jnp.maximum(_output(nn.crop_to(y, size), _get(buffers, "albedo"), scale, config), 0.0)
     c = color.radiance(_get(buffers, "color"))
-    if config.keep_exact:  # exact pixels kept before the level match and after it (and after TAA)
+    if config.keep_exact:  # exact pixels kept before TAA and the level match, and after them
         exact = exact_mask(_get(buffers, "color"), _get(buffers, "color_var", optional=True),
                            _get(buffers, "spp", optional=True), window=config.exact_window)
         out = jnp.where(exact, c, out)
+    if config.taa_alpha:  # before the match, which puts TAA's result at the input's level
+        taa, out = taa_step(taa, out, _get(buffers, "position"), _get(buffers, "normal"),
+                            _get(buffers, "world_to_ndc"), alpha=config.taa_alpha, window=config.taa_window,
+                            tolerance=config.taa_tolerance)
+        hidden = hidden + (taa,)
     if config.match_level:
         spp = _get(buffers, "spp", optional=True) if config.match_spike_by_rate else None
         out = match_to_input(out * scale, c * scale, config.match_level, spike=config.match_spike,
                              floor=color.EXPOSURE_LEVEL, max_gain=config.match_max_gain or float("inf"),
                              spp=spp) / scale
-        out = jnp.where(exact, c, out) if config.keep_exact else out
-    if not config.taa_alpha:
-        return hidden, out
-    taa, out = taa_step(taa, out, _get(buffers, "position"), _get(buffers, "normal"), _get(buffers, "world_to_ndc"),
-                        alpha=config.taa_alpha, window=config.taa_window, tolerance=config.taa_tolerance)
-    return hidden + (taa,), (jnp.where(exact, c, out) if config.keep_exact else out)
+    if config.keep_exact and (config.match_level or config.taa_alpha):
+        out = jnp.where(exact, c, out)
+    return hidden, out
 
 
 def apply(params: dict, buffers: Buffers, config: Config) -> jax.Array:
