@@ -38,6 +38,8 @@ def frame(h: int, w: int, fields) -> Buffers:
     camera = np.eye(4, dtype=np.float32)
     camera[2, 3] = 5.0  # 5 units in front of the origin (jaxdenoise.view conventions)
     for f in fields:
+        if f == "spp":  # frame metadata, set below
+            continue
         if f in ("world_to_camera", "world_to_ndc"):
             out[f] = camera
             continue

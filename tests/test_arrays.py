@@ -1,4 +1,5 @@
-"""jaxdenoise.arrays: the median of nine by a sorting network against NumPy's median."""
+"""jaxdenoise.arrays: the median of nine by a sorting network against NumPy's median; the lower quantile by
+bisection against jnp.quantile."""
 from __future__ import annotations
 
 import jax
@@ -6,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxdenoise.arrays import edge_blocks, edge_views, median9
+from jaxdenoise.arrays import edge_blocks, edge_views, median9, quantile_lower
 
 
 @pytest.mark.parametrize("ties", [False, True])
@@ -39,3 +40,22 @@ def test_median9_refuses_other_counts():
 def test_edge_blocks_stack_the_edge_views():
     x = jnp.asarray(np.random.default_rng(2).random((2, 5, 6, 3)).astype(np.float32))
     np.testing.assert_array_equal(np.asarray(edge_blocks(x, 1, axis=0)), np.stack(edge_views(x, 1)))
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 1000, 4099])
+def test_quantile_lower_is_jnp_quantile_bit_for_bit(n):
+    """`quantile_lower` (bisection on order keys) equals ``jnp.quantile(..., method="lower")`` exactly:
+    negative values, zeros, ties, -0.0, leading axes, every q from 0 to 1; the gradient picks the element."""
+    r = np.random.default_rng(n)
+    a = (r.standard_normal((3, 2, n)) * 5).astype(np.float32)
+    a[0, 0, : n // 2] = 0.0
+    a[0, 1, : n // 3] = -0.0
+    a[1] = np.round(a[1])  # ties
+    a[2, 0] = np.abs(a[2, 0]) ** 3  # a heavy tail
+    for q in (0.0, 0.1, 0.5, 0.999, 1.0):
+        np.testing.assert_array_equal(np.asarray(quantile_lower(a, q)),
+                                      np.asarray(jnp.quantile(a, q, axis=-1, method="lower")))
+    g = np.asarray(jax.grad(lambda v: quantile_lower(v, 0.5))(jnp.arange(9.0)[::-1]))
+    np.testing.assert_array_equal(g, np.eye(9)[4])
+    with pytest.raises(ValueError, match="q must be"):
+        quantile_lower(a, 1.5)
