@@ -88,6 +88,8 @@ def main() -> None:
         if get(base).requirements() is not None:
             print(f"skipping {n}: {get(base).requirements()}")
             continue
+        if label.endswith("+taa") and getattr(get(base).config, "taa_alpha", 0):
+            raise SystemExit(f"{n}: '{base}' runs TAA itself; '+taa' would run it twice")
         fns[label] = load(base, folder or (args.weights if base == "rae" else None))
     res: dict = {"data": args.data, "sequences": [str(s.folder) for s in seqs], "rows": [], "masks": args.masks}
     for seq in seqs:

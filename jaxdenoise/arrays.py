@@ -87,18 +87,19 @@ def median9(values) -> jax.Array:
 
 def _order_key(x: jax.Array) -> jax.Array:
     """float32 values as uint32 keys in the same order (the radix-sort map: a negative number's bits
-    inverted, a non-negative one's sign bit set)."""
-    i = jax.lax.bitcast_convert_type(x.astype(jnp.float32), jnp.uint32)
+    inverted, a non-negative one's sign bit set); -0.0 first made +0.0, so equal values share a key."""
+    i = jax.lax.bitcast_convert_type(x.astype(jnp.float32) + jnp.float32(0.0), jnp.uint32)
     return jnp.where((i >> 31) == 1, ~i, i | jnp.uint32(0x80000000))
 
 
 def quantile_lower(x: Any, q: float) -> jax.Array:
-    """``jnp.quantile(x, q, axis=-1, method="lower")`` for float32 (or narrower) values without NaN, bit
-    for bit, without sorting: the element at sorted index ``floor(q (n - 1))`` (computed in float32, as
-    jnp does) found by bisection over the values' order-preserving 32-bit keys, 32 counting passes
-    over the axis. XLA's CPU sort of a 1280x720 frame's luminance took 280 ms, this 8 ms (docs/training.md
-    "Speed on this CPU": the exposure statistic). ``q`` is a static number in [0, 1]; leading axes are
-    independent. The gradient goes to the selected element (to each of equal ones, shared)."""
+    """``jnp.quantile(x, q, axis=-1, method="lower")`` for float32 (or narrower) values without NaN, the
+    same value without sorting (a zero may come back with the other sign): the element at sorted index
+    ``floor(q (n - 1))`` (computed in float32, as jnp does) found by bisection over the values' order-
+    preserving 32-bit keys, 32 counting passes over the axis. XLA's CPU sort of a 1280x720 frame's
+    luminance took 280 ms, this 8 ms (docs/training.md "Speed on this CPU": the exposure statistic).
+    ``q`` is a static number in [0, 1]; leading axes are independent. The gradient goes to the selected
+    element (to each of equal ones, shared)."""
     x = jnp.asarray(x)
     q = float(q)
     if not 0.0 <= q <= 1.0:
@@ -106,7 +107,7 @@ def quantile_lower(x: Any, q: float) -> jax.Array:
     n = x.shape[-1]
     if n == 0:
         raise ValueError("quantile_lower: the last axis is empty")
-    k = int(min(max(np.floor(np.float32(q) * np.float32(n - 1)), 0), n - 1))  # 0-based sorted index
+    k = int(min(max(np.floor(np.float32(q) * (np.float32(n) - np.float32(1))), 0), n - 1))  # as jnp rounds it
     key = _order_key(x)
 
     def halve(_, bounds):  # the smallest key with at least k + 1 values at or below it lies in [lo, hi]

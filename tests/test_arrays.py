@@ -44,18 +44,20 @@ def test_edge_blocks_stack_the_edge_views():
 
 @pytest.mark.parametrize("n", [1, 2, 7, 1000, 4099])
 def test_quantile_lower_is_jnp_quantile_bit_for_bit(n):
-    """`quantile_lower` (bisection on order keys) equals ``jnp.quantile(..., method="lower")`` exactly:
-    negative values, zeros, ties, -0.0, leading axes, every q from 0 to 1; the gradient picks the element."""
+    """`quantile_lower` (bisection on order keys) gives ``jnp.quantile(..., method="lower")``'s value:
+    negative values, zeros of both signs, ties, leading axes, every q from 0 to 1; the gradient goes
+    to the selected element."""
     r = np.random.default_rng(n)
     a = (r.standard_normal((3, 2, n)) * 5).astype(np.float32)
     a[0, 0, : n // 2] = 0.0
     a[0, 1, : n // 3] = -0.0
+    a[0, 1, n // 3: 2 * n // 3] = 0.0  # both zeros in one row
     a[1] = np.round(a[1])  # ties
     a[2, 0] = np.abs(a[2, 0]) ** 3  # a heavy tail
     for q in (0.0, 0.1, 0.5, 0.999, 1.0):
         np.testing.assert_array_equal(np.asarray(quantile_lower(a, q)),
                                       np.asarray(jnp.quantile(a, q, axis=-1, method="lower")))
-    g = np.asarray(jax.grad(lambda v: quantile_lower(v, 0.5))(jnp.arange(9.0)[::-1]))
-    np.testing.assert_array_equal(g, np.eye(9)[4])
+    v = jnp.asarray([5.0, 1.0, 8.0, 3.0, 0.0, 7.0, 2.0, 6.0, 4.0])  # the median, 4.0, is the last
+    np.testing.assert_array_equal(np.asarray(jax.grad(lambda u: quantile_lower(u, 0.5))(v)), np.eye(9)[8])
     with pytest.raises(ValueError, match="q must be"):
         quantile_lower(a, 1.5)

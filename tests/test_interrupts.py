@@ -54,7 +54,7 @@ def _checkpoint_step(run: Path) -> int:
 
 
 def _run(cmd: list[str], env=ENV) -> float:
-    """Run ``cmd`` to completion; returns its wall time (kill moments are fractions of it)."""
+    """Run ``cmd`` to completion (it must succeed); returns its wall time."""
     t0 = time.perf_counter()
     r = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=900)
     assert r.returncode == 0, r.stderr[-2000:]

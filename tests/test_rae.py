@@ -399,10 +399,10 @@ def test_taa_setting():
     recurrent one; each frame is the network's output without TAA passed through `taa_step` with the
     same settings, the first frame (and `apply`) unchanged; `needs` adds what reprojection reads; bad
     settings are refused by their config names."""
-    from jaxdenoise.filters import taa_init, taa_step
+    from jaxdenoise.filters import match_to_input, taa_init, taa_step
 
     on = dataclasses.replace(TINY, taa_alpha=0.25, taa_window=3, taa_tolerance=0.05)
-    assert {"position", "normal", "world_to_ndc"} <= rae.needs(on) & rae.required(on)
+    assert {"position", "normal", "world_to_ndc"} <= rae.needs(on) and "world_to_ndc" not in rae.required(on)
     assert "world_to_ndc" not in rae.needs(TINY)
     p = rae.init(jax.random.PRNGKey(4), TINY)
     cam = np.eye(4, dtype=np.float32)
@@ -428,3 +428,28 @@ def test_taa_setting():
     np.testing.assert_array_equal(np.asarray(rae.apply(p, frames[2], on)), np.asarray(rae.apply(p, frames[2], TINY)))
     with pytest.raises(ValueError, match="config.taa_window"):
         rae.num_params(dataclasses.replace(on, taa_window=4))
+    # the shipped order: exact pixels, TAA, the level match, exact pixels again; a frame without
+    # world_to_ndc (not required) gets no TAA and leaves the history as it was
+    shipped = dataclasses.replace(on, exposure="frame", match_level=4.0, match_max_gain=1.2, keep_exact=True,
+                                  exact_window=3)
+    assert "world_to_ndc" in rae.needs(shipped) and "world_to_ndc" not in rae.required(shipped)
+    network = dataclasses.replace(shipped, taa_alpha=0.0, match_level=0.0)  # the network and exact pixels
+    color_ = np.asarray(frames[0].color).copy()
+    color_[4:7, 5:8] = [5.0, 4.0, 3.0]  # a uniform light: kept exactly at 1 spp by the 3x3 window rule
+    seq = [f.replace(color=color_) for f in frames]
+    s_on, taa = rae.init_state(seq[0], shipped), taa_init((16, 12, 3))
+    for f in seq:
+        pre = rae.step(p, s_on[:-1], f, network)[1]
+        s_on, out = rae.step(p, s_on, f, shipped)
+        taa, want = taa_step(taa, pre, f.position, f.normal, f.world_to_ndc, alpha=0.25, window=3, tolerance=0.05)
+        scale = rae.exposure_scale(f, shipped)
+        c = np.asarray(color.radiance(f.color))
+        want = np.array(match_to_input(want * scale, c * scale, 4.0, spike=shipped.match_spike,
+                                       floor=color.EXPOSURE_LEVEL, max_gain=1.2) / scale)
+        want[5, 6] = c[5, 6]
+        np.testing.assert_allclose(np.asarray(out), want, rtol=2e-5, atol=1e-6)
+        np.testing.assert_array_equal(np.asarray(out)[5, 6], c[5, 6])
+    bare = seq[0].replace(world_to_ndc=None)
+    s2, out2 = rae.step(p, s_on, bare, shipped)
+    for a, b in zip(jax.tree_util.tree_leaves(s2[-1]), jax.tree_util.tree_leaves(s_on[-1])):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

@@ -55,6 +55,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..color import exposure_level, luminance
+from ..view import has_hit
 from ._common import FilterError, require_finite
 
 
@@ -118,8 +119,8 @@ def reproject(state: TaaState, position: Any, normal: Any, *, tolerance: float =
     if state.image.shape[:2] != (h, w):
         raise FilterError(f"taa: the frame is {h}x{w} but the carried history is "
                           f"{state.image.shape[0]}x{state.image.shape[1]}")
-    hit = jnp.sum(n * n, axis=-1) > 0
-    unit = n / jnp.maximum(jnp.sqrt(jnp.sum(n * n, axis=-1, keepdims=True)), 1e-12)
+    hit = has_hit(n)[..., 0]
+    unit = n * jax.lax.rsqrt(jnp.where(hit, jnp.sum(n * n, axis=-1), 1.0))[..., None]  # finite gradient at 0
     m = jnp.asarray(state.world_to_ndc, jnp.float32)
     q = jnp.einsum("ij,hwj->hwi", m[:, :3], p) + m[:, 3]
     depth = q[..., 3]
@@ -153,9 +154,10 @@ def reproject(state: TaaState, position: Any, normal: Any, *, tolerance: float =
         acc_n = acc_n + wt * jnp.take(cnt, idx, axis=0)[..., 0]
     valid = total >= 0.5
     norm = jnp.where(valid, total, 1.0)
-    image = jnp.where(valid[..., None], acc / jnp.where(valid[..., None], acc_w, 1.0), 0.0)
+    good_w = valid[..., None] & (acc_w > 0)  # acc_w is 0 only if every tap's weight underflowed
+    image = jnp.where(good_w, acc / jnp.where(good_w, acc_w, 1.0), 0.0)
     count = jnp.where(valid, jnp.round(acc_n / norm), 0.0)[..., None]
-    return image, count, valid[..., None] & (count > 0)
+    return image, count, good_w & (count > 0)
 
 
 def hdr_weight(x: jax.Array, knee: Any) -> jax.Array:
@@ -213,9 +215,10 @@ def taa_step(state: TaaState, current: Any, position: Any, normal: Any, world_to
         hist = jnp.clip(hist, lo, hi)
     length = jnp.where(valid, jnp.minimum(count + 1.0, 1.0 / alpha), 1.0)
     wx, wh = hdr_weight(x, knee) / length, hdr_weight(hist, knee) * (1.0 - 1.0 / length)
-    out = jnp.where(valid, (wx * x + wh * hist) / (wx + wh), x)
-    hit = (jnp.sum(n * n, axis=-1, keepdims=True) > 0).astype(jnp.float32)
-    return TaaState(out, p, hit, m, length), out
+    den = wx + wh
+    blend = valid & (den > 0)  # den is 0 only for colours beyond float range over the knee
+    out = jnp.where(blend, (wx * x + wh * hist) / jnp.where(blend, den, 1.0), x)
+    return TaaState(out, p, has_hit(n).astype(jnp.float32), m, length), out
 
 
 __all__ = ["TaaState", "check_taa_settings", "hdr_weight", "reproject", "taa_init", "taa_step"]

@@ -139,7 +139,8 @@ class Config:
     # x `taa_window` neighbourhood, and with `taa_tolerance` > 0 taps off the pixel's tangent plane by
     # more than that fraction of the depth dropped), before the level match (which puts the result at the
     # input's level: the weights favour darker colours); the history carries TAA's result, not the match's.
-    # Carried in the state beside the recurrent one; a single frame (`apply`) is unchanged.
+    # Carried in the state beside the recurrent one; a single frame (`apply`) is unchanged, and a frame
+    # without `world_to_ndc` (not required) gets no TAA.
     taa_alpha: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})
     taa_window: int = dataclasses.field(default=3, metadata={"fine_tune": True})
     taa_tolerance: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})
@@ -228,9 +229,10 @@ def needs(config: Config) -> frozenset[str]:
 
 
 def required(config: Config) -> frozenset[str]:
-    """`needs` without roughness (a frame that lacks it gets ``config.missing_roughness``) and the colour
-    variance (a 1-spp frame has none; ``keep_exact`` then uses its window rule)."""
-    return needs(config) - {"roughness", "color_var"}
+    """`needs` without roughness (a frame that lacks it gets ``config.missing_roughness``), the colour
+    variance (a 1-spp frame has none; ``keep_exact`` then uses its window rule) and the camera's
+    projection (a frame without ``world_to_ndc`` is denoised without TAA)."""
+    return needs(config) - {"roughness", "color_var", "world_to_ndc"}
 
 
 def in_channels(config: Config) -> int:
@@ -454,9 +456,10 @@ def step(params: dict, state: tuple, buffers: Buffers, config: Config) -> tuple[
                            _get(buffers, "spp", optional=True), window=config.exact_window)
         out = jnp.where(exact, c, out)
     if config.taa_alpha:  # before the match, which puts TAA's result at the input's level
-        taa, out = taa_step(taa, out, _get(buffers, "position"), _get(buffers, "normal"),
-                            _get(buffers, "world_to_ndc"), alpha=config.taa_alpha, window=config.taa_window,
-                            tolerance=config.taa_tolerance)
+        projection = _get(buffers, "world_to_ndc", optional=True)
+        if projection is not None:  # a frame without its camera's projection: no TAA, the history kept
+            taa, out = taa_step(taa, out, _get(buffers, "position"), _get(buffers, "normal"), projection,
+                                alpha=config.taa_alpha, window=config.taa_window, tolerance=config.taa_tolerance)
         hidden = hidden + (taa,)
     if config.match_level:
         spp = _get(buffers, "spp", optional=True) if config.match_spike_by_rate else None
