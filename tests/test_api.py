@@ -127,7 +127,10 @@ def test_regime_notes_say_where_a_network_runs_outside_what_it_was_trained_on():
     assert notes(lbf, at(128)) == ["lbf was trained at 4-64 spp; this frame has 128 spp, outside its trained rates"]
     single = [n for n in notes(rae, at(1)) if "single frame" in n]
     assert len(single) == 1 and "7-frame sequences" in single[0]
-    assert notes(rae, at(1), sequence=True) == []  # in a video its state is carried
+    with_ndc = at(1).replace(world_to_ndc=np.eye(4, dtype=np.float32))
+    assert notes(rae, with_ndc, sequence=True) == []  # in a video its state is carried
+    # without the camera's projection a video gets no TAA: said
+    assert notes(rae, at(1), sequence=True) == ["rae ran without optional buffer(s) ['world_to_ndc'] it can use"]
     assert notes(get("gaussian"), at(1000)) == []  # no trained regime
 
 
