@@ -26,9 +26,11 @@ every method they compare), so a per-frame method can be compared with TAA too:
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
 from pathlib import Path
 
+import jax
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -39,25 +41,25 @@ for p in (ROOT, ROOT / "experiments"):
 from jaxdenoise import load, metrics  # noqa: E402
 from jaxdenoise.buffers import BuffersError  # noqa: E402
 from jaxdenoise.data import discover, renders_by_spp, sequences  # noqa: E402
+from jaxdenoise.filters import taa_init, taa_step  # noqa: E402
 from jaxdenoise.fsutil import write_json  # noqa: E402
 from jaxdenoise.io import read_buffers, read_image  # noqa: E402
 from jaxdenoise.methods import get  # noqa: E402
 from demc_levels import frame_levels, scene_masks, scene_of  # noqa: E402
 
 
+@functools.lru_cache(maxsize=None)
+def _taa_fn(alpha: float, window: int, tolerance: float):
+    """`taa_step` jitted once per setting (every sequence and rate reuses it)."""
+    return jax.jit(functools.partial(taa_step, alpha=alpha, window=window, tolerance=tolerance))
+
+
 def with_taa(outs: np.ndarray, frames: list, config) -> np.ndarray:
     """``outs`` (T, H, W, 3) after `jaxdenoise.filters.taa_step` with ``config``'s ``taa_*`` settings,
     frame by frame, reprojected through ``frames``' positions, normals and cameras."""
-    import functools
-
-    import jax
-
-    from jaxdenoise.filters import taa_init, taa_step
-
     if not config.taa_alpha:
         raise SystemExit("+taa: the shipped rae config has no TAA (taa_alpha 0)")
-    step = jax.jit(functools.partial(taa_step, alpha=config.taa_alpha, window=config.taa_window,
-                                     tolerance=config.taa_tolerance))
+    step = _taa_fn(config.taa_alpha, config.taa_window, config.taa_tolerance)
     state, res = taa_init(outs.shape[1:]), []
     for o, f in zip(outs, frames):
         if f.position is None or f.normal is None or f.world_to_ndc is None:

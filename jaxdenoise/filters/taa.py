@@ -56,7 +56,7 @@ import numpy as np
 
 from ..color import exposure_level, luminance
 from ..view import has_hit
-from ._common import FilterError, require_finite
+from ._common import FilterError, as_image, require_finite
 
 
 class TaaState(NamedTuple):
@@ -99,26 +99,15 @@ def taa_init(shape: tuple[int, ...]) -> TaaState:
                     jnp.zeros(lead + (h, w, 1), jnp.float32))
 
 
-def _frame(name: str, a: Any, channels: int | None = None) -> jax.Array:
-    a = jnp.asarray(a, jnp.float32)
-    if a.ndim != 3 or (channels is not None and a.shape[-1] != channels):
-        want = f"(H, W, {channels})" if channels else "(H, W, C)"
-        raise FilterError(f"taa: argument '{name}' has shape {tuple(a.shape)}; expected one frame {want}")
-    return a
-
-
 def reproject(state: TaaState, position: Any, normal: Any, *, tolerance: float = 0.0, knee: Any = None
               ) -> tuple[jax.Array, jax.Array, jax.Array]:
     """``state``'s result and history lengths read at where this frame's surface points were in the
     previous frame (step 1 of the module docstring): ``(image (H, W, C), count (H, W, 1), valid
     (H, W, 1) bool)``; image and count are 0 where not valid. With ``knee`` (a luminance), each tap's
     colour is weighted by `hdr_weight` as well (the history lengths are not)."""
-    p = _frame("position", position, 3)
-    n = _frame("normal", normal, 3)
-    h, w, _ = p.shape
-    if state.image.shape[:2] != (h, w):
-        raise FilterError(f"taa: the frame is {h}x{w} but the carried history is "
-                          f"{state.image.shape[0]}x{state.image.shape[1]}")
+    h, w = state.image.shape[:2]
+    p = as_image(position, "position", hw=(h, w), channels=3).astype(jnp.float32)
+    n = as_image(normal, "normal", hw=(h, w), channels=3).astype(jnp.float32)
     hit = has_hit(n)[..., 0]
     unit = n * jax.lax.rsqrt(jnp.where(hit, jnp.sum(n * n, axis=-1), 1.0))[..., None]  # finite gradient at 0
     m = jnp.asarray(state.world_to_ndc, jnp.float32)
@@ -183,13 +172,16 @@ def taa_step(state: TaaState, current: Any, position: Any, normal: Any, world_to
     C)``, with ``world_to_ndc`` ``(4, 4)`` or ``(..., 4, 4)`` and a state from `taa_init` of the same
     shape) are independent sequences."""
     _check_settings(alpha, window, tolerance, ("argument 'alpha'", "argument 'window'", "argument 'tolerance'"))
-    for name, a in (("current", current), ("position", position), ("normal", normal), ("world_to_ndc", world_to_ndc)):
+    args = (("current", current), ("position", position), ("normal", normal), ("world_to_ndc", world_to_ndc))
+    for name, a in args:
         if a is None:
             raise FilterError(f"taa: argument '{name}' is None; TAA reprojects through the world positions, "
                               f"normals and camera of every frame")
-        require_finite(a, name)
-    x = jnp.asarray(current, jnp.float32)
-    if x.ndim > 3:
+    require_finite(world_to_ndc, "world_to_ndc")  # the images are checked by `as_image` (or below)
+    if np.ndim(current) > 3:
+        for name, a in args[:3]:  # inside vmap the values are traced: checked here
+            require_finite(a, name)
+        x = jnp.asarray(current, jnp.float32)
         lead = x.shape[:-3]
         m = jnp.broadcast_to(jnp.asarray(world_to_ndc, jnp.float32), lead + (4, 4))
         flat = lambda a: a.reshape((-1,) + a.shape[len(lead):])  # noqa: E731
@@ -198,18 +190,17 @@ def taa_step(state: TaaState, current: Any, position: Any, normal: Any, world_to
                                 flat(jnp.asarray(position, jnp.float32)), flat(jnp.asarray(normal, jnp.float32)),
                                 flat(m))
         return jax.tree_util.tree_map(lambda a: a.reshape(lead + a.shape[1:]), st), out.reshape(x.shape)
-    x = _frame("current", x)
+    x = as_image(current, "current").astype(jnp.float32)
     if state.image.shape != x.shape:
         raise FilterError(f"taa: the frame has shape {tuple(x.shape)} but the carried history "
                           f"{tuple(state.image.shape)}")
-    p = _frame("position", position, 3)
-    n = _frame("normal", normal, 3)
     m = jnp.asarray(world_to_ndc, jnp.float32)
     if m.shape != (4, 4):
         raise FilterError(f"taa: argument 'world_to_ndc' has shape {tuple(m.shape)}; expected (4, 4)")
     level = jax.lax.stop_gradient(exposure_level(x))  # a frame statistic, as `color.exposure_scale` holds it
     knee = jnp.where(level > 1e-12, level, jnp.inf)  # a black frame: no weighting (every weight 1)
-    hist, count, valid = reproject(state, p, n, tolerance=tolerance, knee=knee)
+    hist, count, valid = reproject(state, position, normal, tolerance=tolerance, knee=knee)  # checks both
+    p, n = jnp.asarray(position, jnp.float32), jnp.asarray(normal, jnp.float32)
     if window:
         lo, hi = _neighbourhood(x, window)
         hist = jnp.clip(hist, lo, hi)

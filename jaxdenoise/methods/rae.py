@@ -472,8 +472,9 @@ def step(params: dict, state: tuple, buffers: Buffers, config: Config) -> tuple[
 
 
 def apply(params: dict, buffers: Buffers, config: Config) -> jax.Array:
-    """A single frame (or a batch of independent frames): the first step from a zero state (no TAA
-    history, so TAA leaves it as it is)."""
+    """A single frame (or a batch of independent frames): the first step from a zero state. TAA is
+    left out: without a history it returns the frame as it is (`jaxdenoise.filters.taa_step`)."""
+    config = dataclasses.replace(config, taa_alpha=0.0)
     return step(params, init_state(buffers, config), buffers, config)[1]
 
 
