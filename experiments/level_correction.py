@@ -107,11 +107,11 @@ def _measure(labels: list[str], folders: list[str]) -> dict:
     return measure(labels, folders, [1, 4, 16, 64])
 
 
-def score_settings(init: str, settings: dict[str, dict], folders: list[str]) -> dict:
-    """For each label -> `demc.Config` overrides: the weights in ``init`` with them, measured by
-    `demc_levels.measure` on ``folders`` at every rate they hold: mean RelMSE per (folder, rate), their
-    geometric mean, the level (median over frames, R/G/B) and the emitters (median over frames that
-    show one)."""
+def score_settings(init: str, settings: dict[str, dict], folders: list[str], method: str = "demc") -> dict:
+    """For each label -> ``method``'s Config overrides: the weights in ``init`` with them, measured by
+    `demc_levels.measure` on ``folders`` at every rate they hold: mean RelMSE and SSIM per (folder,
+    rate), the RelMSE's geometric mean, the level (median over frames, R/G/B), the surface halo pixels
+    (summed over frames), the emitters (median over frames that show one) and the exposure test."""
     import multiprocessing
     import tempfile
     from concurrent.futures import ProcessPoolExecutor
@@ -119,10 +119,10 @@ def score_settings(init: str, settings: dict[str, dict], folders: list[str]) -> 
     from jaxdenoise import checkpoint
     from jaxdenoise.api import resolve
 
-    base, params = resolve("demc", init)
+    base, params = resolve(method, init)
     lv: dict = {"methods": {}}
     with tempfile.TemporaryDirectory() as tmp:
-        labels = [f"{k}={checkpoint.save(Path(tmp) / k, params, base.with_config(**v).config, {'method': 'demc'})}"
+        labels = [f"{k}={checkpoint.save(Path(tmp) / k, params, base.with_config(**v).config, {'method': method})}"
                   for k, v in settings.items()]
         # a child process per `CHUNK` settings: each setting compiles its own programs, and one process
         # compiling them all ran out of memory maps (XLA's LLVM: "Cannot allocate memory") after ~45
@@ -137,7 +137,10 @@ def score_settings(init: str, settings: dict[str, dict], folders: list[str]) -> 
         emit = {f"{f} {s}": np.median([e for e in rec["emitters"][f][s] if e is not None], 0).tolist()
                 for f, s in keys if any(e is not None for e in rec["emitters"][f][s])}
         out[label] = {"config": over, "relmse": rel, "geomean": float(np.exp(np.mean(np.log(list(rel.values()))))),
+                      "ssim": {f"{f} {s}": float(np.mean([x[1] for x in rec["scores"][f][s]])) for f, s in keys},
                       "level": {f"{f} {s}": np.median(rec["levels"][f][s], 0).tolist() for f, s in keys},
+                      "halo": {f"{f} {s}": int(np.sum(rec["halo_surface"][f][s])) for f, s in keys},
+                      "exposure": {f: rec["exposure"][f]["max_rel_diff"] for f in folders if f in rec["exposure"]},
                       "emitters": emit}
         print(label, round(out[label]["geomean"], 5), flush=True)
     return out

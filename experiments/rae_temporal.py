@@ -20,7 +20,7 @@ the shipped `rae`'s TAA settings (`jaxdenoise.filters.taa_step`; Chaitanya et al
 every method they compare), so a per-frame method can be compared with TAA too:
 
     python experiments/rae_temporal.py --data data/rae_library_eval \
-        --methods input,oidn,oidn+taa,rae-paper,rae,rae-0.9.15=runs/rae_0915,rae-per-frame \
+        --methods input,oidn,oidn+taa,rae-paper,rae,rae-0.9.16=runs/rae_0916,rae-0.9.15=runs/rae_0915,rae-per-frame \
         --out docs/results/rae_rates/temporal.json
 """
 from __future__ import annotations

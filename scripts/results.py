@@ -327,9 +327,9 @@ def rae_frames(results: Path, rel: str, methods: list[str]) -> str:
 bind("rae-temporal-means", rae_temporal_means, "rae_temporal.json", ["input", "oidn", "rae", "rae-per-frame"])
 # issue 34: the scene library's evaluation fly-throughs, the rate-general rae against the paper's recipe
 bind("rae-rates-temporal", rae_temporal_means, "rae_rates/temporal.json",
-     ["input", "oidn", "oidn+taa", "rae-paper", "rae-0.9.15", "rae"])
+     ["input", "oidn", "oidn+taa", "rae-paper", "rae-0.9.15", "rae-0.9.16", "rae"])
 bind("rae-rates-frames", rae_frames, "rae_rates/temporal.json",
-     ["oidn", "oidn+taa", "rae-paper", "rae-0.9.15", "rae", "rae-per-frame"])
+     ["oidn", "oidn+taa", "rae-paper", "rae-0.9.15", "rae-0.9.16", "rae", "rae-per-frame"])
 
 
 @renderer("rae-outlier-clamp")
@@ -1061,6 +1061,8 @@ STUDIES: dict[str, tuple[str, str]] = {
     "level_correction/level_correction.md": ("level_correction", "level_correction/level_correction.json"),
     "level_correction/choice.md": ("level_correction", "level_correction/choice.json"),
     "level_correction_val4/choice.md": ("level_correction", "level_correction_val4/choice.json"),
+    "refine/demc/refine.md": ("refine_choice", "refine/demc/refine.json"),
+    "refine/rae/refine.md": ("refine_choice", "refine/rae/refine.json"),
 }
 
 # Pages written by hand that state no measured number of their own (they point to the pages above).

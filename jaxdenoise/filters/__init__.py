@@ -10,7 +10,8 @@ gradients); `check_match_settings` refuses a network config's settings for `matc
 `exact_mask` (a boolean mask, not a filter) says where a frame's estimate is exact, for a denoiser to keep
 its input there; `check_exact_window` refuses a config's window for it. `taa_step` (with `taa_init`,
 `reproject`, `TaaState`, `check_taa_settings`) is temporal anti-aliasing over a sequence's outputs: a
-state carried from frame to frame, not a filter of one image.
+state carried from frame to frame, not a filter of one image. `refine` (with `check_refine_settings`)
+is a feature-guided cross-bilateral pass over a network's output, any leading axes, static settings.
 """
 from ._common import FilterError
 from .bilateral import (DELTA, ZETA, bilateral, cross_bilateral, drop_constant_features,
@@ -19,6 +20,7 @@ from .exact import check_exact_window, exact_mask
 from .gaussian import gaussian, gaussian_kernel_1d
 from .level import check_match_settings, match_level, match_to_input
 from .nlm import cross_nlm, prefilter_features
+from .refine import check_refine_settings, refine
 from .spikes import clamp_outliers, remove_spikes
 from .taa import TaaState, check_taa_settings, hdr_weight, reproject, taa_init, taa_step
 
@@ -30,6 +32,7 @@ __all__ = [
     "bilateral",
     "check_exact_window",
     "check_match_settings",
+    "check_refine_settings",
     "check_taa_settings",
     "clamp_outliers",
     "cross_bilateral",
@@ -42,6 +45,7 @@ __all__ = [
     "match_level",
     "match_to_input",
     "prefilter_features",
+    "refine",
     "remove_spikes",
     "reproject",
     "spatiotemporal_cross_bilateral",

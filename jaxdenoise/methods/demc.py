@@ -37,7 +37,9 @@ colour is first scaled to `jaxdenoise.color.EXPOSURE_LEVEL` by the frame's
 term on 8x8 block means, which keeps the colour level (docs/methods/demc.md). Xavier initialisation
 of the encoder, latent and fusion convs (Sec. 4.2). The paper's channel widths are not legible:
 ours are ``Config.widths`` (docs/methods/demc.md gives the parameter count). Any input size: padded
-to a multiple of 32 and cropped back.
+to a multiple of 32 and cropped back. At inference (ours, `demc`'s shipped settings, `apply`): exact
+pixels kept (``keep_exact``), a feature-guided cross-bilateral refinement of the output
+(``refine_sigma``, `jaxdenoise.filters.refine`), the colour level put at the input's (``match_level``).
 """
 from __future__ import annotations
 
@@ -55,10 +57,12 @@ from .. import color as color_ops
 from ..color import gamma
 from ..nn.state import call
 from ..errors import JaxdenoiseError
-from ..filters import check_exact_window, check_match_settings, exact_mask, match_to_input
+from ..filters import (check_exact_window, check_match_settings, check_refine_settings, exact_mask, match_to_input,
+                       refine)
 from ..pipeline import carried_stat, carried_stats
 
-__all__ = ["Config", "needs", "required", "keep_exact_pixels", "exact_pixels", "match_input_level", "init",
+__all__ = ["Config", "needs", "required", "keep_exact_pixels", "exact_pixels", "match_input_level",
+           "refine_output", "init",
            "init_from_data", "apply", "forward", "loss", "relative_loss", "make_dataset", "batch", "inputs",
            "frame_stats", "position_moments", "exposure_scale", "num_params", "widths_of", "FEATURES", "TRAIN",
            "FROZEN", "WEIGHTS"]
@@ -142,6 +146,15 @@ class Config:
     match_spike: float = dataclasses.field(default=4.0, metadata={"fine_tune": True})
     match_max_gain: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})  # 0: no limit
     match_spike_by_rate: bool = dataclasses.field(default=False, metadata={"fine_tune": True})
+    # Refinement (ours, issue 33; docs/methods/demc.md "Refinement"): with `refine_sigma` > 0 the output
+    # (exact pixels kept) goes through `jaxdenoise.filters.refine`, a cross-bilateral pass guided by the
+    # first-hit albedo and normal (bandwidths `refine_albedo`, `refine_normal`) with a range term relative
+    # to the pixels' brightness (`refine_range`) over a Gaussian of `refine_sigma` pixels, before the level
+    # match; 0: off. Inference only.
+    refine_sigma: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})
+    refine_range: float = dataclasses.field(default=0.4, metadata={"fine_tune": True})
+    refine_albedo: float = dataclasses.field(default=0.03, metadata={"fine_tune": True})
+    refine_normal: float = dataclasses.field(default=0.1, metadata={"fine_tune": True})
     train_crop: int = 96
     train_batch: int = 32
 
@@ -180,6 +193,9 @@ def _check(config: Config) -> None:
         raise JaxdenoiseError(f"demc: config.exposure is {config.exposure!r}; expected one of {EXPOSURES}")
     if not config.gamma > 0:
         raise JaxdenoiseError(f"demc: config.gamma must be > 0, got {config.gamma}")
+    if config.refine_sigma:
+        check_refine_settings("demc: config.", config.refine_sigma, config.refine_range, config.refine_albedo,
+                              config.refine_normal)
     check_match_settings("demc: config.", config.match_level, config.match_spike, config.match_max_gain,
                          config.match_spike_by_rate)
     check_exact_window("demc: config.exact_window", config.exact_window)
@@ -430,15 +446,32 @@ def _run(params, buffers, config, train=False):
 
 def apply(params: dict, buffers: Buffers, config: Config) -> jax.Array:
     """Denoise one frame or a batch (leading axes): HDR ``(..., H, W, 3)`` (inference mode: the
-    BatchNorm running statistics); with ``keep_exact``, `keep_exact_pixels`; with ``match_level``,
-    `match_input_level` (exact pixels kept before and after, so a network's error on them moves no
-    level around them)."""
+    BatchNorm running statistics); with ``keep_exact``, `keep_exact_pixels`; with ``refine_sigma``,
+    `refine_output`; with ``match_level``, `match_input_level` (exact pixels kept before and after, so
+    a network's error on them moves no level around them)."""
     out = _run(params, buffers, config)
-    if not config.keep_exact:
-        return match_input_level(out, buffers, config) if config.match_level else out
-    exact, color = exact_pixels(buffers, config.exact_window, out.dtype)
-    out = jnp.where(exact, color, out)
-    return jnp.where(exact, color, match_input_level(out, buffers, config)) if config.match_level else out
+    exact = None
+    if config.keep_exact:
+        exact, color = exact_pixels(buffers, config.exact_window, out.dtype)
+        out = jnp.where(exact, color, out)
+    if config.refine_sigma:
+        out = refine_output(out, buffers, config)
+    if config.match_level:
+        out = match_input_level(out, buffers, config)
+    if exact is not None and (config.refine_sigma or config.match_level):
+        out = jnp.where(exact, color, out)
+    return out
+
+
+def refine_output(out: jax.Array, buffers: Any, config: Config) -> jax.Array:
+    """``out`` through `jaxdenoise.filters.refine` with ``config``'s ``refine_*`` settings, guided by
+    the frame's albedo and normal, in the exposure-scaled units of `inputs` (so ``f(k x) = k f(x)``
+    still holds). Any leading axes."""
+    scale = exposure_scale(buffers, config)
+    get = _getter(buffers)
+    return refine(out * scale, get("albedo"), get("normal"), sigma=config.refine_sigma,
+                  range_sigma=config.refine_range, albedo_sigma=config.refine_albedo,
+                  normal_sigma=config.refine_normal) / scale
 
 
 def match_input_level(out: jax.Array, buffers: Any, config: Config) -> jax.Array:

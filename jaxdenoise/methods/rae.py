@@ -58,8 +58,8 @@ import numpy as np
 from .. import color, metrics, nn, view
 from ..buffers import SAMPLE_COUNT_FIELD, Buffers
 from ..errors import JaxdenoiseError
-from ..filters import (check_exact_window, check_match_settings, check_taa_settings, clamp_outliers, exact_mask,
-                       match_to_input, taa_init, taa_step)
+from ..filters import (check_exact_window, check_match_settings, check_refine_settings, check_taa_settings,
+                       clamp_outliers, exact_mask, match_to_input, refine, taa_init, taa_step)
 from ..pipeline import carried_stat, carried_stats
 
 __all__ = ["Config", "needs", "required", "init", "apply", "init_state", "step", "loss", "run_sequence", "inputs",
@@ -144,6 +144,14 @@ class Config:
     taa_alpha: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})
     taa_window: int = dataclasses.field(default=3, metadata={"fine_tune": True})
     taa_tolerance: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})
+    # Refinement (ours, issue 34; DEMC's, `jaxdenoise.methods.demc.Config.refine_sigma`; docs/methods/rae.md
+    # "Refinement"): with `refine_sigma` > 0 each output frame (exact pixels kept) goes through
+    # `jaxdenoise.filters.refine`, a cross-bilateral pass guided by the first-hit albedo and normal, before
+    # TAA and the level match; 0: off. The recurrent state is not touched; inference only.
+    refine_sigma: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})
+    refine_range: float = dataclasses.field(default=0.4, metadata={"fine_tune": True})
+    refine_albedo: float = dataclasses.field(default=0.03, metadata={"fine_tune": True})
+    refine_normal: float = dataclasses.field(default=0.1, metadata={"fine_tune": True})
     # The training recipe the weights folder is named after: "" (the default weights) or "paper"
     # (Sec. 5.3: 1-spp fly-throughs, the paper's input; registered as "rae-paper").
     recipe: str = dataclasses.field(default="", metadata={"training": True})
@@ -200,6 +208,9 @@ def _check(config: Config) -> None:
     check_exact_window("rae: config.exact_window", config.exact_window)
     if config.taa_alpha:
         check_taa_settings("rae: config.", config.taa_alpha, config.taa_window, config.taa_tolerance)
+    if config.refine_sigma:
+        check_refine_settings("rae: config.", config.refine_sigma, config.refine_range, config.refine_albedo,
+                              config.refine_normal)
     if not config.level_weight >= 0 or int(config.level_pool) < 1 or not config.level_eps > 0:
         raise JaxdenoiseError(f"rae: config.level_weight must be >= 0, config.level_pool >= 1 and config.level_eps "
                               f"> 0, got {config.level_weight!r}, {config.level_pool!r} and {config.level_eps!r}")
@@ -225,6 +236,8 @@ def needs(config: Config) -> frozenset[str]:
         out.add("color_var")
     if config.taa_alpha:
         out |= {"position", "normal", "world_to_ndc"}
+    if config.refine_sigma:
+        out.add("normal")
     return frozenset(out)
 
 
@@ -455,6 +468,10 @@ def step(params: dict, state: tuple, buffers: Buffers, config: Config) -> tuple[
         exact = exact_mask(_get(buffers, "color"), _get(buffers, "color_var", optional=True),
                            _get(buffers, "spp", optional=True), window=config.exact_window)
         out = jnp.where(exact, c, out)
+    if config.refine_sigma:  # in the exposure-scaled units, so f(k x) = k f(x) still holds
+        out = refine(out * scale, _get(buffers, "albedo"), _get(buffers, "normal"), sigma=config.refine_sigma,
+                     range_sigma=config.refine_range, albedo_sigma=config.refine_albedo,
+                     normal_sigma=config.refine_normal) / scale
     if config.taa_alpha:  # before the match, which puts TAA's result at the input's level
         projection = _get(buffers, "world_to_ndc", optional=True)
         if projection is not None:  # a frame without its camera's projection: no TAA, the history kept
@@ -466,7 +483,7 @@ def step(params: dict, state: tuple, buffers: Buffers, config: Config) -> tuple[
         out = match_to_input(out * scale, c * scale, config.match_level, spike=config.match_spike,
                              floor=color.EXPOSURE_LEVEL, max_gain=config.match_max_gain or float("inf"),
                              spp=spp) / scale
-    if config.keep_exact and (config.match_level or config.taa_alpha):
+    if config.keep_exact and (config.match_level or config.taa_alpha or config.refine_sigma):
         out = jnp.where(exact, c, out)
     return hidden, out
 

@@ -488,13 +488,19 @@ FILTERS: dict[str, FilterSpec] = {
         grad_field="albedo"),
     # the history is clamped to the frame's 3x3 range, then blended with the frame: convex
     "taa_step": FilterSpec(_taa, frozenset({"color", "position", "normal"}), ("alpha",), static_param=True),
+    # a normalised cross-bilateral average of the image's pixels: convex; range_sigma = p + 1e-3 (it must be > 0)
+    "refine": FilterSpec(
+        lambda b, p: _filters_mod().refine(b.color, b.albedo, b.normal, sigma=1.0, range_sigma=p + 1e-3,
+                                           albedo_sigma=0.1, normal_sigma=0.3, radius=RADIUS),
+        frozenset({"color", "albedo", "normal"}), ("range_sigma",), static_param=True),
 }
 # Public names of jaxdenoise.filters that are not image filters (helpers and the error type; `exact_mask`
 # returns a boolean mask by exact comparisons: nothing to overflow, no parameter, no gradient; `taa_init`,
-# `reproject`, `TaaState`, `hdr_weight` and `check_taa_settings` are the parts of `taa_step`, which has its entry).
+# `reproject`, `TaaState`, `hdr_weight` and `check_taa_settings` are the parts of `taa_step`, which has its entry;
+# `check_refine_settings` refuses a config's settings for `refine`).
 FILTER_HELPERS = frozenset({"FilterError", "gaussian_kernel_1d", "drop_constant_features", "DELTA", "ZETA",
                             "check_match_settings", "check_exact_window", "exact_mask", "check_taa_settings",
-                            "taa_init", "reproject", "TaaState", "hdr_weight"})
+                            "taa_init", "reproject", "TaaState", "hdr_weight", "check_refine_settings"})
 
 
 def public_filters() -> list[str]:
