@@ -90,7 +90,7 @@ def score_sequences(method: str, init: str, settings: dict[str, dict], folder: s
     return out
 
 
-def choose(res: dict, level_slack: float, cost_slack: float) -> str:
+def choose_setting(res: dict, level_slack: float, cost_slack: float) -> str:
     """The rule of the module docstring on ``res``'s scores; marks each setting's ``eligible``."""
     off = res["settings"]["off"]
     seq_off = res.get("sequences", {}).get("off")
@@ -174,7 +174,7 @@ def main(argv=None) -> None:
     if args.sequences:
         res["sequences_data"] = args.sequences
         res["sequences"] = score_sequences(args.method, args.init, settings, args.sequences)
-    res["chosen"] = choose(res, args.level_slack, args.cost_slack)
+    res["chosen"] = choose_setting(res, args.level_slack, args.cost_slack)
     res["command"] = "python experiments/refine_choice.py " + " ".join(sys.argv[1:] if argv is None else argv)
     all_measured(res, "refine.json")
     print(write_study(Path(args.out), "refine.json", "refine.md", res, page))
