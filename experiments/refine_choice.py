@@ -137,7 +137,7 @@ def page(res: dict) -> str:
                + f" | {num(worst, '.3f')} | {sum(v['halo'].values())} | ")
         if seq:
             row += "; ".join(f"{s}: {num(r['relmse'], '.4f')} / {num(r['temporal'], '.4f')}"
-                             for s, r in seq[label].items()) + " | "
+                             for s, r in sorted(seq[label].items(), key=lambda kv: int(kv[0]))) + " | "
         row += f"{'yes' if v['eligible'] else 'no'} | {num(v['geomean'], '.5f')} | {num(v['geomean'] / off, '.3f')} |"
         lines.append(row)
     worst_exp = max(e for v in res["settings"].values() for e in v["exposure"].values())
