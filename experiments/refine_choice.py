@@ -10,7 +10,8 @@
 
 Off and every combination of ``--sigmas`` x ``--ranges`` x ``--albedos`` x ``--normals`` (by default
 `SIGMAS` x `RANGES` x `ALBEDOS` x `NORMALS`; the weights' other inference settings as in ``--init``'s
-config), each scored on the single frames of ``--data`` at every rate they hold as `level_correction.score_settings` scores (`demc_levels.measure`: RelMSE, SSIM, the colour level on
+config), each scored on the single frames of ``--data`` at every rate they hold as
+`level_correction.score_settings` scores (`demc_levels.measure`: RelMSE, SSIM, the colour level on
 surface pixels, surface halo pixels, the exposure test) and, with ``--sequences``, on those validation
 fly-throughs (state carried: per-frame RelMSE and the temporal error, per rate). The rule, fixed before
 any evaluation frame was scored:
