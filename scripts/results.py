@@ -1061,6 +1061,7 @@ STUDIES: dict[str, tuple[str, str]] = {
     "level_correction/level_correction.md": ("level_correction", "level_correction/level_correction.json"),
     "level_correction/choice.md": ("level_correction", "level_correction/choice.json"),
     "level_correction_val4/choice.md": ("level_correction", "level_correction_val4/choice.json"),
+    "level_correction_0917/choice.md": ("level_correction", "level_correction_0917/choice.json"),
     "refine/demc/refine.md": ("refine_choice", "refine/demc/refine.json"),
     "refine/rae/refine.md": ("refine_choice", "refine/rae/refine.json"),
 }
