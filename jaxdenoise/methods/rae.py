@@ -24,7 +24,9 @@ eighth channel holds ``log2(spp) / RATE_SCALE`` (per pixel on an adaptively samp
 ``outlier_clamp`` (8 for ``rae``, 0 in `Config`) cuts isolated input spikes
 (`jaxdenoise.filters.clamp_outliers`), in place of the paper's path-space regularization (Sec. 3.1)
 that kept them out of its inputs. ``keep_exact`` (on for ``rae``) keeps the input where a frame's samples
-all agreed (`jaxdenoise.filters.exact_mask`: a directly seen light), as `demc` does.
+all agreed (`jaxdenoise.filters.exact_mask`: a directly seen light), as `demc` does. Each output frame then
+goes through ``refine_sigma``'s feature-guided cross-bilateral pass (`jaxdenoise.filters.refine`, as
+`demc`), TAA over a sequence (``taa_alpha``, Sec. 5.4) and the level match (``match_level``): `step`.
 
 Network (Sec. 4.1-4.2, Fig. 2): five encoder stages (widths 32, 43, 57, 76, 101) of a 3x3 conv and
 a recurrent block (`jaxdenoise.nn.RecurrentBlock`: a conv on the input, concatenation with the
