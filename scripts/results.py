@@ -1064,6 +1064,7 @@ STUDIES: dict[str, tuple[str, str]] = {
     "level_correction_0917/choice.md": ("level_correction", "level_correction_0917/choice.json"),
     "refine/demc/refine.md": ("refine_choice", "refine/demc/refine.json"),
     "refine/rae/refine.md": ("refine_choice", "refine/rae/refine.json"),
+    "rae_rates/output_clamp/output_clamp.md": ("output_clamp_choice", "rae_rates/output_clamp/output_clamp.json"),
 }
 
 # Pages written by hand that state no measured number of their own (they point to the pages above).

@@ -307,6 +307,38 @@ def test_clamp_outliers_cuts_isolated_spikes_only():
         clamp_outliers(bad_pixel, 4.0, 0.2)
 
 
+def test_clamp_outliers_radius_cuts_blobs_and_keeps_lines_edges_and_corners():
+    """With ``radius`` r the reference is the largest luminance at Chebyshev distance exactly r (a NumPy
+    evaluation, zeros outside the image): a 3x3 blob (narrower than 2r - 1 = 5 px) is cut to factor x
+    its ring's level, its hue kept; a 1-px line, a bright half-plane's edge and a bright square's corner
+    cross the ring and pass unchanged; a radius above 1 with the median, or not an int >= 1, is refused."""
+    lum = lambda v: 0.2126 * v[..., 0] + 0.7152 * v[..., 1] + 0.0722 * v[..., 2]
+    rng = np.random.default_rng(3)
+    x = (0.05 + rng.random((17, 19, 3)) * rng.random((17, 19, 1)) ** 6 * 40).astype(np.float32)
+    for r in (2, 3):
+        p = np.pad(lum(x.astype(np.float64)), r)
+        ring = np.max([p[r + dy:r + dy + 17, r + dx:r + dx + 19] for dy in range(-r, r + 1)
+                       for dx in range(-r, r + 1) if max(abs(dy), abs(dx)) == r], axis=0)
+        limit = 1.5 * np.maximum(ring, 0.01)
+        want = x * np.where(lum(x) > limit, limit / lum(x), 1.0)[..., None]
+        np.testing.assert_allclose(np.asarray(clamp_outliers(x, 1.5, 0.01, radius=r)), want, rtol=2e-5)
+    scene = np.full((24, 24, 3), 0.1, np.float32)
+    scene[3:6, 3:6] = [30.0, 20.0, 10.0]  # a blob the network let through
+    scene[12, 2:22] = 8.0  # a 1-px bright line
+    scene[14:24, 14:24] = 5.0  # a bright square (its corner at (14, 14)) meeting the frame's edge
+    out = np.asarray(clamp_outliers(scene, 2.0, 1e-3, radius=3))
+    np.testing.assert_allclose(lum(out[4, 4]), 0.2, rtol=1e-5)  # 2 x the dim ring
+    np.testing.assert_allclose(out[4, 4] / out[4, 4, 0], scene[4, 4] / scene[4, 4, 0], rtol=1e-5)
+    keep = np.ones((24, 24), bool)
+    keep[3:6, 3:6] = False
+    np.testing.assert_array_equal(out[keep], scene[keep])
+    assert np.all(lum(np.asarray(clamp_outliers(scene, 2.0, 1e-3))[3:6, 3:6]) > 10)  # radius 1: the blob passes
+    for kw, match in (({"radius": 0}, "'radius'"), ({"radius": 2.0}, "'radius'"), ({"radius": True}, "'radius'"),
+                      ({"radius": 2, "against": "median"}, "'radius' is 2 with against='median'")):
+        with pytest.raises(FilterError, match=match):
+            clamp_outliers(scene, 2.0, 1e-3, **kw)
+
+
 def test_match_level_puts_the_low_pass_level_at_the_target_and_keeps_the_detail():
     """A textured image 20 % dark (red) and 10 % bright (blue) against a noisy target that is right on
     average comes back at the target's level, its detail (the ratio between neighbouring pixels) kept;

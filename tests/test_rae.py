@@ -300,6 +300,37 @@ def test_outlier_clamp_in_the_input():
     assert get("rae").config.outlier_clamp == 8.0 and get("rae-paper").config.outlier_clamp == 0.0
 
 
+def test_output_clamp_after_the_network():
+    """``output_clamp``: the network's frame (exact pixels kept) through `clamp_outliers` with
+    ``radius`` in the exposure-scaled units (floor 0.1 % of `color.EXPOSURE_LEVEL`), exact pixels
+    restored after (the composition by hand); the state is the network's; f(k x) = k f(x) holds; it
+    needs exposure "frame" and an int radius >= 1."""
+    from jaxdenoise.filters import clamp_outliers, exact_mask
+
+    cfg = rae.Config(widths=(4, 4, 6, 6, 8), bottleneck=8, exposure="frame", keep_exact=True, exact_window=3)
+    on = dataclasses.replace(cfg, output_clamp=1.0, output_clamp_radius=2)
+    p = rae.init(jax.random.PRNGKey(1), cfg)
+    fr = _frame(16, 12, seed=3)
+    s0 = rae.init_state(fr, cfg)
+    state_off, off = rae.step(p, s0, fr, cfg)
+    state_on, out = rae.step(p, s0, fr, on)
+    for a, b in zip(state_off, state_on):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    scale = rae.exposure_scale(fr, cfg)
+    want = clamp_outliers(off * scale, 1.0, 1e-3 * color.EXPOSURE_LEVEL, radius=2) / scale
+    exact = exact_mask(fr.color, None, fr.spp, window=3)
+    np.testing.assert_allclose(np.asarray(out), np.asarray(jnp.where(exact, color.radiance(fr.color), want)),
+                               rtol=1e-5, atol=1e-7)
+    assert not np.allclose(np.asarray(out), np.asarray(off))  # an untrained network's frame has local peaks
+    for k in (1 / 16, 16.0):
+        np.testing.assert_allclose(np.asarray(rae.apply(p, fr.replace(color=fr.color * np.float32(k)), on)),
+                                   k * np.asarray(out), rtol=2e-4, atol=1e-6 * k)
+    with pytest.raises(ValueError, match="output_clamp"):
+        rae.num_params(dataclasses.replace(TINY, output_clamp=2.0))  # TINY has exposure "none"
+    with pytest.raises(ValueError, match="output_clamp_radius"):
+        rae.num_params(dataclasses.replace(on, output_clamp_radius=0))
+
+
 def test_level_match_setting():
     """``match_level``: the output's low-pass level is moved toward the input's within the gain limit
     (`jaxdenoise.filters.match_to_input`), the state is the network's, f(k x) = k f(x) holds; it needs

@@ -2,10 +2,13 @@
 
 ``remove_spikes(image, *, n_std=2.0, block_radius=1) -> image``
 
-``clamp_outliers(color, factor, floor, *, against="neighbours") -> color`` (ours, `rae`'s input: docs/methods/rae.md
-"Outliers"): each pixel's Rec. 709 luminance limited to ``factor`` times the larger of ``floor`` and
-the largest luminance among its 8 neighbours (neighbours outside the image count as 0), the hue kept.
-With ``against="median"`` the reference is instead the median luminance of the pixel's 3 x 3
+``clamp_outliers(color, factor, floor, *, against="neighbours", radius=1) -> color`` (ours, `rae`'s input:
+docs/methods/rae.md "Outliers"): each pixel's Rec. 709 luminance limited to ``factor`` times the larger
+of ``floor`` and the largest luminance among its 8 neighbours (neighbours outside the image count as 0),
+the hue kept. With ``radius`` r > 1 the neighbours are the 8 r pixels at Chebyshev distance exactly r (the
+border of the (2r + 1)-pixel square around it; `rae`'s output clamp, docs/methods/rae.md "Output
+clamp"): a blob narrower than 2r - 1 pixels is cut, while a line, an edge or a corner, which crosses the
+square's border, passes. With ``against="median"`` the reference is instead the median luminance of the pixel's 3 x 3
 block (border repeated), which also cuts a cluster of up to 4 outlier pixels (`match_to_input`'s
 target). ``factor`` is a static number, or one per image: an array broadcastable to the leading
 axes (`match_to_input`'s factor by sample count; a traced array is not checked). A noisy input's
@@ -57,7 +60,8 @@ def remove_spikes(image, *, n_std: float = 2.0, block_radius: int = 1) -> jax.Ar
     return jnp.where(spike, med, x).astype(out_dtype)
 
 
-def clamp_outliers(color, factor: float, floor: float, *, against: str = "neighbours") -> jax.Array:
+def clamp_outliers(color, factor: float, floor: float, *, against: str = "neighbours",
+                   radius: int = 1) -> jax.Array:
     """``(..., H, W, 3)`` colour with isolated luminance spikes cut (module docstring)."""
     shape = tuple(np.shape(color))
     if len(shape) < 3 or shape[-1] != 3:
@@ -68,18 +72,34 @@ def clamp_outliers(color, factor: float, floor: float, *, against: str = "neighb
         raise FilterError(f"argument 'floor' is {floor!r}; expected a static finite number > 0")
     if against not in ("neighbours", "median"):
         raise FilterError(f"argument 'against' is {against!r}; expected 'neighbours' or 'median'")
+    if isinstance(radius, bool) or not isinstance(radius, (int, np.integer)) or radius < 1:
+        raise FilterError(f"argument 'radius' is {radius!r}; expected an int >= 1")
+    if radius > 1 and against != "neighbours":
+        raise FilterError(f"argument 'radius' is {radius!r} with against={against!r}; a radius above 1 goes "
+                          "with against='neighbours'")
     lum = luminance(c)
     lead, (h, w) = lum.shape[:-2], lum.shape[-2:]
     factor = _factor(factor, lead)
     if against == "median":  # the 3 x 3 block's median, border repeated: a cluster of <= 4 pixels is cut too
         near = median9(edge_blocks(lum[..., None], 1, axis=0))[..., 0]
     else:
-        pad = jnp.pad(lum, [(0, 0)] * len(lead) + [(1, 1), (1, 1)])
-        near = jnp.max(jnp.stack([pad[..., 1 + dy:1 + dy + h, 1 + dx:1 + dx + w]
-                                  for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]), axis=0)
+        near = _ring_max(lum, int(radius))
     limit = factor * jnp.maximum(near, float(floor))
     cut = lum > limit  # then lum > 0: the inner where keeps the unused branch's gradient finite at lum = 0
     return c * jnp.where(cut, limit / jnp.where(cut, lum, 1.0), 1.0)[..., None]
+
+
+def _ring_max(lum: jax.Array, r: int) -> jax.Array:
+    """``(..., H, W)`` -> the largest value at Chebyshev distance exactly ``r`` from each pixel (0 outside
+    the image): the square border's top and bottom rows (a running maximum of 2r + 1 along W) and its
+    left and right columns without their corners (a running maximum of 2r - 1 along H)."""
+    h, w = lum.shape[-2:]
+    nd = lum.ndim
+    pad = jnp.pad(lum, [(0, 0)] * (nd - 2) + [(r, r), (r, r)])
+    rows = jax.lax.reduce_window(pad, -jnp.inf, jax.lax.max, (1,) * (nd - 1) + (2 * r + 1,), (1,) * nd, "VALID")
+    cols = jax.lax.reduce_window(pad, -jnp.inf, jax.lax.max, (1,) * (nd - 2) + (2 * r - 1, 1), (1,) * nd, "VALID")
+    return jnp.maximum(jnp.maximum(rows[..., :h, :], rows[..., 2 * r:2 * r + h, :]),
+                       jnp.maximum(cols[..., 1:1 + h, :w], cols[..., 1:1 + h, 2 * r:2 * r + w]))
 
 
 def _factor(factor, lead: tuple[int, ...]):

@@ -26,7 +26,8 @@ eighth channel holds ``log2(spp) / RATE_SCALE`` (per pixel on an adaptively samp
 that kept them out of its inputs. ``keep_exact`` (on for ``rae``) keeps the input where a frame's samples
 all agreed (`jaxdenoise.filters.exact_mask`: a directly seen light), as `demc` does. Each output frame then
 goes through ``refine_sigma``'s feature-guided cross-bilateral pass (`jaxdenoise.filters.refine`, as
-`demc`), TAA over a sequence (``taa_alpha``, Sec. 5.4) and the level match (``match_level``): `step`.
+`demc`), the output clamp (``output_clamp``: isolated peaks cut), TAA over a sequence (``taa_alpha``,
+Sec. 5.4) and the level match (``match_level``): `step`.
 
 Network (Sec. 4.1-4.2, Fig. 2): five encoder stages (widths 32, 43, 57, 76, 101) of a 3x3 conv and
 a recurrent block (`jaxdenoise.nn.RecurrentBlock`: a conv on the input, concatenation with the
@@ -154,6 +155,13 @@ class Config:
     refine_range: float = dataclasses.field(default=0.4, metadata={"fine_tune": True})
     refine_albedo: float = dataclasses.field(default=0.03, metadata={"fine_tune": True})
     refine_normal: float = dataclasses.field(default=0.1, metadata={"fine_tune": True})
+    # Output clamp (ours, issue 34's halo check; docs/methods/rae.md "Output clamp"): with `output_clamp` > 0
+    # each output frame's luminance (after the refinement, before TAA and the level match; exposure-scaled)
+    # is limited to `output_clamp` times the largest luminance at Chebyshev distance `output_clamp_radius`
+    # (`jaxdenoise.filters.clamp_outliers` with ``radius``): a peak narrower than 2 r - 1 pixels that the
+    # network let through from an input spike is cut, a line, edge or corner passes; 0: off.
+    output_clamp: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})
+    output_clamp_radius: int = dataclasses.field(default=3, metadata={"fine_tune": True})
     # The training recipe the weights folder is named after: "" (the default weights) or "paper"
     # (Sec. 5.3: 1-spp fly-throughs, the paper's input; registered as "rae-paper").
     recipe: str = dataclasses.field(default="", metadata={"training": True})
@@ -213,6 +221,12 @@ def _check(config: Config) -> None:
     if config.refine_sigma:
         check_refine_settings("rae: config.", config.refine_sigma, config.refine_range, config.refine_albedo,
                               config.refine_normal)
+    if not config.output_clamp >= 0 or (config.output_clamp and config.exposure != "frame"):
+        raise JaxdenoiseError(f"rae: config.output_clamp must be >= 0 (0: off) and needs exposure 'frame' (the "
+                              f"frame's level sets its floor), got {config.output_clamp!r} with {config.exposure!r}")
+    r = config.output_clamp_radius
+    if isinstance(r, bool) or not isinstance(r, (int, np.integer)) or r < 1:
+        raise JaxdenoiseError(f"rae: config.output_clamp_radius must be an int >= 1, got {r!r}")
     if not config.level_weight >= 0 or int(config.level_pool) < 1 or not config.level_eps > 0:
         raise JaxdenoiseError(f"rae: config.level_weight must be >= 0, config.level_pool >= 1 and config.level_eps "
                               f"> 0, got {config.level_weight!r}, {config.level_pool!r} and {config.level_eps!r}")
@@ -474,6 +488,9 @@ def step(params: dict, state: tuple, buffers: Buffers, config: Config) -> tuple[
         out = refine(out * scale, _get(buffers, "albedo"), _get(buffers, "normal"), sigma=config.refine_sigma,
                      range_sigma=config.refine_range, albedo_sigma=config.refine_albedo,
                      normal_sigma=config.refine_normal) / scale
+    if config.output_clamp:  # before TAA, so its history carries no peak; floor: 0.1 % of the frame's level
+        out = clamp_outliers(out * scale, config.output_clamp, 1e-3 * color.EXPOSURE_LEVEL,
+                             radius=config.output_clamp_radius) / scale
     if config.taa_alpha:  # before the match, which puts TAA's result at the input's level
         projection = _get(buffers, "world_to_ndc", optional=True)
         if projection is not None:  # a frame without its camera's projection: no TAA, the history kept
@@ -485,7 +502,8 @@ def step(params: dict, state: tuple, buffers: Buffers, config: Config) -> tuple[
         out = match_to_input(out * scale, c * scale, config.match_level, spike=config.match_spike,
                              floor=color.EXPOSURE_LEVEL, max_gain=config.match_max_gain or float("inf"),
                              spp=spp) / scale
-    if config.keep_exact and (config.match_level or config.taa_alpha or config.refine_sigma):
+    if config.keep_exact and (config.match_level or config.taa_alpha or config.refine_sigma
+                              or config.output_clamp):
         out = jnp.where(exact, c, out)
     return hidden, out
 
