@@ -324,6 +324,8 @@ def main() -> None:
                     "module's schedule; 3e-4: the earlier CPU fine-tunes')")
     ap.add_argument("--init", default="jaxdenoise/weights/rae-paper")
     ap.add_argument("--level-weight", type=float, default=1.0, help="level: the level term's weight")
+    ap.add_argument("--spike-weight", type=float, default=0.0, help="level: the spike term's weight "
+                    "(`rae.Config.spike_weight`; 0: off)")
     ap.add_argument("--seed", type=int, default=3, help="level: the crops' seed (the shipped run drew seed 0's)")
     ap.add_argument("--factors", default="0,1,1.5,2,3,4,8,16,32,64",
                     help="clamp: outlier-clamp factors to score, the first the reference (0: off)")
@@ -383,7 +385,9 @@ def main() -> None:
     for arm in arms:
         if args.what == "level":
             name = f"level{args.level_weight:g}_lr{args.lr:g}_s{args.seed}"
-            rec = _train_arm(arm, data, out, args, args.steps, name, level_weight=args.level_weight)
+            extra = {"spike_weight": args.spike_weight} if args.spike_weight else {}
+            name += f"_spike{args.spike_weight:g}" if extra else ""
+            rec = _train_arm(arm, data, out, args, args.steps, name, level_weight=args.level_weight, **extra)
         else:
             name, rec = arm, _train_arm(arm, data, out, args, args.steps)
         summary["runs"][name] = rec | {"command": " ".join(["python", "experiments/rae_rates.py", *sys.argv[1:]])}

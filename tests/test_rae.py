@@ -331,6 +331,29 @@ def test_output_clamp_after_the_network():
         rae.num_params(dataclasses.replace(on, output_clamp_radius=0))
 
 
+def test_spike_term_charges_only_light_above_the_targets_neighbourhood():
+    """``spike_weight``: the term is max(0, p - k M)^2 / ((k M)^2 + eps) averaged over pixels per frame
+    (p the prediction's channel mean, M the target's 9x9 maximum of it; a NumPy evaluation); an output
+    below k M everywhere, however wrong, costs nothing; bad settings are refused by name."""
+    from scipy.ndimage import maximum_filter
+
+    cfg = rae.Config(spike_weight=2.0, spike_factor=4.0, spike_window=9)
+    r = np.random.default_rng(5)
+    t = r.uniform(0.05, 1.0, (2, 3, 20, 18, 3)).astype(np.float32)
+    p = t * r.uniform(0.0, 3.0, t.shape).astype(np.float32)  # wrong, but nowhere above 4x the neighbourhood
+    assert np.all(np.asarray(rae.loss_terms(jnp.asarray(p), jnp.asarray(t), cfg)["spike"]) == 0)
+    p[1, 2, 10, 9] = 60.0
+    p[0, 0, 0, 0] = 40.0  # at the border: the window is cut by the frame
+    m = 4.0 * maximum_filter(t.mean(-1), size=(1, 1, 9, 9), mode="constant", cval=-np.inf)
+    want = np.mean(np.maximum(p.mean(-1) - m, 0) ** 2 / (m ** 2 + cfg.level_eps), axis=(0, 2, 3))
+    got = np.asarray(rae.loss_terms(jnp.asarray(p), jnp.asarray(t), cfg)["spike"])
+    np.testing.assert_allclose(got, want, rtol=1e-5)
+    assert got[0] > 0 and got[2] > 0 and got[1] == 0
+    for bad in ({"spike_weight": -1.0}, {"spike_factor": 0.0}, {"spike_window": 8}):
+        with pytest.raises(ValueError, match="spike_"):
+            rae.num_params(dataclasses.replace(TINY, **bad))
+
+
 def test_level_match_setting():
     """``match_level``: the output's low-pass level is moved toward the input's within the gain limit
     (`jaxdenoise.filters.match_to_input`), the state is the network's, f(k x) = k f(x) holds; it needs

@@ -176,6 +176,14 @@ class Config:
     level_weight: float = dataclasses.field(default=0.0, metadata={"training": True})
     level_pool: int = dataclasses.field(default=8, metadata={"training": True})
     level_eps: float = dataclasses.field(default=1e-3, metadata={"training": True})
+    # A spike term (ours, issue 34's halo check; docs/methods/rae.md "A spike term"): `spike_weight` times
+    # the mean over pixels of max(0, p - k M)^2 / ((k M)^2 + `level_eps`), p the prediction's channel mean,
+    # M the target's largest channel mean in the `spike_window` square around the pixel, k `spike_factor`:
+    # only light drawn above k times anything the target has nearby is charged (the L1 of 0.2-powered
+    # values charges an output of 50 over a target of 5 only 0.8); 0 = off.
+    spike_weight: float = dataclasses.field(default=0.0, metadata={"training": True})
+    spike_factor: float = dataclasses.field(default=4.0, metadata={"training": True})
+    spike_window: int = dataclasses.field(default=9, metadata={"training": True})
     train_frames: int = 7
     train_crop: int = 64
     train_batch: int = 4
@@ -224,6 +232,11 @@ def _check(config: Config) -> None:
     if not config.output_clamp >= 0 or (config.output_clamp and config.exposure != "frame"):
         raise JaxdenoiseError(f"rae: config.output_clamp must be >= 0 (0: off) and needs exposure 'frame' (the "
                               f"frame's level sets its floor), got {config.output_clamp!r} with {config.exposure!r}")
+    w = config.spike_window
+    if not config.spike_weight >= 0 or not config.spike_factor > 0 or isinstance(w, bool) \
+            or not isinstance(w, (int, np.integer)) or w < 1 or w % 2 == 0:
+        raise JaxdenoiseError(f"rae: config.spike_weight must be >= 0, config.spike_factor > 0 and config.spike_window "
+                              f"an odd int >= 1, got {config.spike_weight!r}, {config.spike_factor!r} and {w!r}")
     r = config.output_clamp_radius
     if isinstance(r, bool) or not isinstance(r, (int, np.integer)) or r < 1:
         raise JaxdenoiseError(f"rae: config.output_clamp_radius must be an int >= 1, got {r!r}")
@@ -541,7 +554,8 @@ def _hfen(img: jax.Array, sigma: float) -> jax.Array:
 def loss_terms(pred: jax.Array, target: jax.Array, config: Config) -> dict:
     """Per-frame ``L_s``, ``L_g``, ``L_t`` of ``(B, T, H, W, 3)`` HDR sequences (``L_t`` of frame 0 is 0),
     and with ``level_weight`` the level term (`Config.level_weight`): the RelMSE of ``level_pool``-pixel
-    block means (`jaxdenoise.metrics.relmse_per_image`, eps ``level_eps``) in HDR."""
+    block means (`jaxdenoise.metrics.relmse_per_image`, eps ``level_eps``) in HDR; with ``spike_weight``
+    the spike term (`Config.spike_weight`)."""
     p = color.gamma(pred, 1.0 / config.power)
     t = color.gamma(jnp.maximum(target, 0.0), 1.0 / config.power)
     ls = jnp.mean(jnp.abs(p - t), axis=(0, 2, 3, 4))
@@ -552,6 +566,12 @@ def loss_terms(pred: jax.Array, target: jax.Array, config: Config) -> dict:
     if config.level_weight:
         blocks = [nn.block_means(a, config.level_pool) for a in (pred, target)]
         terms["level"] = jnp.mean(metrics.relmse_per_image(*blocks, config.level_eps), axis=0)
+    if config.spike_weight:
+        w = int(config.spike_window)
+        near = config.spike_factor * jax.lax.reduce_window(jnp.maximum(target, 0.0).mean(-1), -jnp.inf, jax.lax.max,
+                                                           (1, 1, w, w), (1, 1, 1, 1), "SAME")
+        over = jnp.maximum(pred.mean(-1) - near, 0.0)
+        terms["spike"] = jnp.mean(over ** 2 / (near ** 2 + config.level_eps), axis=(0, 2, 3))
     return terms
 
 
@@ -593,6 +613,8 @@ def loss(params: dict, batch: dict, config: Config):
     per_frame = ws * terms["spatial"] + wg * terms["hfen"] + wt * terms["temporal"]
     if config.level_weight:
         per_frame = per_frame + config.level_weight * terms["level"]
+    if config.spike_weight:
+        per_frame = per_frame + config.spike_weight * terms["spike"]
     value = jnp.sum(fw * per_frame) / jnp.sum(fw)
     return value, {"terms": {k: jnp.sum(fw * v) / jnp.sum(fw) for k, v in terms.items()}}
 
