@@ -75,7 +75,8 @@ def page(res: dict) -> str:
             + f" | {num(worst, '.3f')} | {sum(v['halo'].values())} | "
             + "; ".join(f"{s}: {num(r['relmse'], '.4f')} / {num(r['temporal'], '.4f')}"
                         for s, r in sorted(seq[label].items(), key=lambda kv: int(kv[0])))
-            + f" | {'yes' if v['eligible'] else 'no'} | {num(v['geomean'], '.5f')} | {num(v['geomean'] / off, '.3f')} |")
+            + f" | {'yes' if v['eligible'] else 'no'} | {num(v['geomean'], '.5f')} | "
+            + f"{num(v['geomean'] / off, '.3f')} |")
     worst_exp = max(e for v in res["settings"].values() for e in v["exposure"].values())
     lines += ["", f"Exposure test (f(k x) against k f(x), k = 1/16 .. 16, one 4-spp frame per folder): the largest "
               f"difference over every setting, relative to the output's peak: {num(worst_exp, '.2e')}.", "",

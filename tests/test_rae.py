@@ -300,6 +300,19 @@ def test_outlier_clamp_in_the_input():
     assert get("rae").config.outlier_clamp == 8.0 and get("rae-paper").config.outlier_clamp == 0.0
 
 
+def _step_off_on(cfg, on):
+    """One first step of a 16x12 frame with ``cfg`` and with ``on`` (inference settings only): the
+    params, the frame and both outputs; the two states must be the network's, bit for bit."""
+    p = rae.init(jax.random.PRNGKey(1), cfg)
+    fr = _frame(16, 12, seed=3)
+    s0 = rae.init_state(fr, cfg)
+    state_off, off = rae.step(p, s0, fr, cfg)
+    state_on, out = rae.step(p, s0, fr, on)
+    for a, b in zip(state_off, state_on):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    return p, fr, off, out
+
+
 def test_output_clamp_after_the_network():
     """``output_clamp``: the network's frame (exact pixels kept) through `clamp_outliers` with
     ``radius`` in the exposure-scaled units (floor 0.1 % of `color.EXPOSURE_LEVEL`), exact pixels
@@ -309,13 +322,7 @@ def test_output_clamp_after_the_network():
 
     cfg = rae.Config(widths=(4, 4, 6, 6, 8), bottleneck=8, exposure="frame", keep_exact=True, exact_window=3)
     on = dataclasses.replace(cfg, output_clamp=1.0, output_clamp_radius=2)
-    p = rae.init(jax.random.PRNGKey(1), cfg)
-    fr = _frame(16, 12, seed=3)
-    s0 = rae.init_state(fr, cfg)
-    state_off, off = rae.step(p, s0, fr, cfg)
-    state_on, out = rae.step(p, s0, fr, on)
-    for a, b in zip(state_off, state_on):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    p, fr, off, out = _step_off_on(cfg, on)
     scale = rae.exposure_scale(fr, cfg)
     want = clamp_outliers(off * scale, 1.0, 1e-3 * color.EXPOSURE_LEVEL, radius=2) / scale
     exact = exact_mask(fr.color, None, fr.spp, window=3)
@@ -360,13 +367,8 @@ def test_level_match_setting():
     exposure "frame"; on for `rae` (sigma 8, limit 1.3, cut 8), off for `rae-paper`."""
     cfg = rae.Config(widths=(4, 4, 6, 6, 8), bottleneck=8, exposure="frame")
     on = dataclasses.replace(cfg, match_level=4.0, match_max_gain=1.2)
-    p = rae.init(jax.random.PRNGKey(1), cfg)
-    fr = _frame(16, 12, seed=3)
+    p, fr, off, out = _step_off_on(cfg, on)
     s0 = rae.init_state(fr, cfg)
-    state_off, off = rae.step(p, s0, fr, cfg)
-    state_on, out = rae.step(p, s0, fr, on)
-    for a, b in zip(state_off, state_on):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     gain = np.asarray(out) / np.maximum(np.asarray(off), 1e-12)
     lit = np.asarray(off) > 1e-6
     assert np.all(gain[lit] <= 1.2 + 1e-5) and np.all(gain[lit] >= 1 / 1.2 - 1e-5) and not np.allclose(out, off)
