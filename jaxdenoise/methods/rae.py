@@ -26,7 +26,7 @@ eighth channel holds ``log2(spp) / RATE_SCALE`` (per pixel on an adaptively samp
 that kept them out of its inputs. ``keep_exact`` (on for ``rae``) keeps the input where a frame's samples
 all agreed (`jaxdenoise.filters.exact_mask`: a directly seen light), as `demc` does. Each output frame then
 goes through ``refine_sigma``'s feature-guided cross-bilateral pass (`jaxdenoise.filters.refine`, as
-`demc`), the output clamp (``output_clamp``: isolated peaks cut), TAA over a sequence (``taa_alpha``,
+`demc`), the output clamp (``output_clamp``, off for ``rae``: isolated peaks cut), TAA over a sequence (``taa_alpha``,
 Sec. 5.4) and the level match (``match_level``): `step`.
 
 Network (Sec. 4.1-4.2, Fig. 2): five encoder stages (widths 32, 43, 57, 76, 101) of a 3x3 conv and
@@ -232,14 +232,14 @@ def _check(config: Config) -> None:
     if not config.output_clamp >= 0 or (config.output_clamp and config.exposure != "frame"):
         raise JaxdenoiseError(f"rae: config.output_clamp must be >= 0 (0: off) and needs exposure 'frame' (the "
                               f"frame's level sets its floor), got {config.output_clamp!r} with {config.exposure!r}")
+    r = config.output_clamp_radius
+    if isinstance(r, bool) or not isinstance(r, (int, np.integer)) or r < 1:
+        raise JaxdenoiseError(f"rae: config.output_clamp_radius must be an int >= 1, got {r!r}")
     w = config.spike_window
     if not config.spike_weight >= 0 or not config.spike_factor > 0 or isinstance(w, bool) \
             or not isinstance(w, (int, np.integer)) or w < 1 or w % 2 == 0:
         raise JaxdenoiseError(f"rae: config.spike_weight must be >= 0, config.spike_factor > 0 and config.spike_window "
                               f"an odd int >= 1, got {config.spike_weight!r}, {config.spike_factor!r} and {w!r}")
-    r = config.output_clamp_radius
-    if isinstance(r, bool) or not isinstance(r, (int, np.integer)) or r < 1:
-        raise JaxdenoiseError(f"rae: config.output_clamp_radius must be an int >= 1, got {r!r}")
     if not config.level_weight >= 0 or int(config.level_pool) < 1 or not config.level_eps > 0:
         raise JaxdenoiseError(f"rae: config.level_weight must be >= 0, config.level_pool >= 1 and config.level_eps "
                               f"> 0, got {config.level_weight!r}, {config.level_pool!r} and {config.level_eps!r}")
