@@ -104,7 +104,7 @@ def main(argv=None) -> None:
     res = {"method": "rae", "init": args.init, "data": folders, "level_slack": args.level_slack,
            "settings": score_settings(args.init, settings, folders, "rae"), "sequences_data": args.sequences,
            "sequences": score_sequences("rae", args.init, settings, args.sequences)}
-    res["chosen"] = choose_setting(res, args.level_slack, cost_slack=float("inf"), cost_key=None)
+    res["chosen"] = choose_setting(res, args.level_slack, cost_slack=0.0, cost_key="output_clamp_radius")
     res["command"] = "python experiments/output_clamp_choice.py " + " ".join(sys.argv[1:] if argv is None else argv)
     all_measured(res, "output_clamp.json")
     print(write_study(Path(args.out), "output_clamp.json", "output_clamp.md", res, page))

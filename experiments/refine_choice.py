@@ -91,9 +91,10 @@ def score_sequences(method: str, init: str, settings: dict[str, dict], folder: s
     return out
 
 
-def choose_setting(res: dict, level_slack: float, cost_slack: float, cost_key: str | None = "refine_sigma") -> str:
-    """The rule of the module docstring on ``res``'s scores; marks each setting's ``eligible``. With
-    ``cost_key`` None (experiments/output_clamp_choice.py) no window preference: the lowest geometric mean."""
+def choose_setting(res: dict, level_slack: float, cost_slack: float, cost_key: str = "refine_sigma") -> str:
+    """The rule of the module docstring on ``res``'s scores; marks each setting's ``eligible``. ``cost_key``
+    names the config field whose smallest value is preferred within ``cost_slack`` (0: no preference, the
+    lowest geometric mean; experiments/output_clamp_choice.py)."""
     off = res["settings"]["off"]
     seq_off = res.get("sequences", {}).get("off")
     for label, v in res["settings"].items():
@@ -110,8 +111,6 @@ def choose_setting(res: dict, level_slack: float, cost_slack: float, cost_key: s
     best = min(res["settings"][k]["geomean"] for k in eligible)
     if best >= off["geomean"]:
         return "off"
-    if cost_key is None:
-        return min(eligible, key=lambda k: res["settings"][k]["geomean"])
     near = [k for k in eligible if res["settings"][k]["geomean"] <= best * (1 + cost_slack)]
     cheapest = min(res["settings"][k]["config"][cost_key] for k in near)
     return min((k for k in near if res["settings"][k]["config"][cost_key] == cheapest),
