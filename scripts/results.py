@@ -1062,6 +1062,8 @@ STUDIES: dict[str, tuple[str, str]] = {
     "level_correction/choice.md": ("level_correction", "level_correction/choice.json"),
     "level_correction_val4/choice.md": ("level_correction", "level_correction_val4/choice.json"),
     "level_correction_0917/choice.md": ("level_correction", "level_correction_0917/choice.json"),
+    "level_correction_val4_0918/choice.md": ("level_correction", "level_correction_val4_0918/choice.json"),
+    "level_correction_margin/choice.md": ("level_correction", "level_correction_margin/choice.json"),
     "refine/demc/refine.md": ("refine_choice", "refine/demc/refine.json"),
     "refine/rae/refine.md": ("refine_choice", "refine/rae/refine.json"),
     "rae_rates/output_clamp/output_clamp.md": ("output_clamp_choice", "rae_rates/output_clamp/output_clamp.json"),
