@@ -75,6 +75,16 @@ beats off's. Written to ``OUT/taa.json``:
 
     python experiments/rae_rates.py taa --init jaxdenoise/weights/rae --out docs/results/rae_rates
 
+``accumulate`` chooses the input accumulation (`jaxdenoise.methods.rae.Config.accumulate_samples`,
+``accumulate_tolerance``, ``accumulate_clamp``; docs/methods/rae.md "Input accumulation") for the weights
+and settings in ``--init``, no training: off and every combination of ``--samples`` x ``--tolerances`` x
+``--clamps``, scored on the same fly-throughs and by the same rule as ``taa``, with the level slack
+``--level-slack`` (the documented choice used 0.005, fixed before it ran). Written to
+``OUT/accumulate.json``:
+
+    python experiments/rae_rates.py accumulate --init jaxdenoise/weights/rae --tolerances 0.02,0.05 \
+        --level-slack 0.005 --out docs/results/rae_rates/accumulate
+
 Every training run's record goes to ``OUT/summary.json``.
 """
 from __future__ import annotations
@@ -259,28 +269,28 @@ def choose_exact(args) -> dict:
     return res
 
 
-def choose_taa(args) -> dict:
-    """The ``taa`` subcommand (module docstring): RelMSE and temporal error of each TAA setting of the
-    weights in ``--init`` on the validation fly-throughs, then the rule."""
-    from demc_levels import frame_levels
-    from jaxdenoise import metrics
-    from jaxdenoise.api import resolve
-    from jaxdenoise.sequence import run_all
+def _validation_sequences(args, base):
+    """The validation fly-throughs of ``--val-data`` and ``--taa-data`` (frames read with the positions,
+    normals and cameras that reprojection needs): ``(folders, [(folder, sequence), ...])``."""
     from jaxdenoise.train import load_validation
 
-    base, params = resolve("rae", args.init)
-    reader = base.with_config(taa_alpha=1.0)  # reads the positions, normals and cameras TAA needs
+    reader = base.with_config(taa_alpha=1.0)
     folders = [args.val_data] + [d for d in args.taa_data.split(",") if d.strip()]
     seqs = [(d, f) for d in folders for f in load_validation(reader, d) if "frames" in f]
     if not seqs:
-        raise SystemExit(f"taa: no validation fly-through in {folders}")
-    settings = {"off": {"taa_alpha": 0.0}}
-    settings |= {f"a{a:g} w{w} t{t:g}": {"taa_alpha": a, "taa_window": w, "taa_tolerance": t}
-                 for a in (float(x) for x in args.alphas.split(","))
-                 for w in (int(x) for x in args.taa_windows.split(","))
-                 for t in (float(x) for x in args.tolerances.split(","))}
-    res = {"init": args.init, "folders": folders, "sequences": len(seqs), "level_slack": args.level_slack,
-           "settings": {}}
+        raise SystemExit(f"{args.what}: no validation fly-through in {folders}")
+    return folders, seqs
+
+
+def _temporal_choice(args, base, params, seqs, settings: dict[str, dict], res: dict) -> dict:
+    """Score each of ``settings`` (label -> config overrides, ``"off"`` first) over ``seqs`` (the sequence
+    driver, state carried) by TAA's rule (module docstring, ``taa``) and record them and the choice in
+    ``res``."""
+    from demc_levels import frame_levels
+    from jaxdenoise import metrics
+    from jaxdenoise.sequence import run_all
+
+    res["settings"] = {}
     for label, over in settings.items():
         m = base.with_config(**over)
         rows = []
@@ -310,9 +320,41 @@ def choose_taa(args) -> dict:
     return res
 
 
+def choose_taa(args) -> dict:
+    """The ``taa`` subcommand (module docstring): RelMSE and temporal error of each TAA setting of the
+    weights in ``--init`` on the validation fly-throughs, then the rule."""
+    from jaxdenoise.api import resolve
+
+    base, params = resolve("rae", args.init)
+    folders, seqs = _validation_sequences(args, base)
+    settings = {"off": {"taa_alpha": 0.0}}
+    settings |= {f"a{a:g} w{w} t{t:g}": {"taa_alpha": a, "taa_window": w, "taa_tolerance": t}
+                 for a in (float(x) for x in args.alphas.split(","))
+                 for w in (int(x) for x in args.taa_windows.split(","))
+                 for t in (float(x) for x in args.tolerances.split(","))}
+    res = {"init": args.init, "folders": folders, "sequences": len(seqs), "level_slack": args.level_slack}
+    return _temporal_choice(args, base, params, seqs, settings, res)
+
+
+def choose_accumulate(args) -> dict:
+    """The ``accumulate`` subcommand (module docstring): TAA's rule over the input accumulation's settings
+    (`jaxdenoise.methods.rae.Config.accumulate_*`) of the weights and settings in ``--init``."""
+    from jaxdenoise.api import resolve
+
+    base, params = resolve("rae", args.init)
+    folders, seqs = _validation_sequences(args, base)
+    settings = {"off": {"accumulate_samples": 0.0}}
+    settings |= {f"s{n:g} t{t:g} c{c:g}": {"accumulate_samples": n, "accumulate_tolerance": t, "accumulate_clamp": c}
+                 for n in (float(x) for x in args.samples.split(","))
+                 for t in (float(x) for x in args.tolerances.split(","))
+                 for c in (float(x) for x in args.clamps.split(","))}
+    res = {"init": args.init, "folders": folders, "sequences": len(seqs), "level_slack": args.level_slack}
+    return _temporal_choice(args, base, params, seqs, settings, res)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("what", choices=("arms", "continue", "level", "clamp", "match", "exact", "taa"))
+    ap.add_argument("what", choices=("arms", "continue", "level", "clamp", "match", "exact", "taa", "accumulate"))
     ap.add_argument("--data", default="runs/rae_rates_data")
     ap.add_argument("--val-data", default="data/rae_library_val")
     ap.add_argument("--out", required=True)
@@ -346,7 +388,11 @@ def main() -> None:
                     help="exact: validation folders of single frames scored beside the fly-throughs")
     ap.add_argument("--alphas", default="0.5,0.25,0.1", help="taa: blend weights (1 / the longest history)")
     ap.add_argument("--taa-windows", default="0,3", help="taa: clamp neighbourhoods (0: no clamp)")
-    ap.add_argument("--tolerances", default="0,0.02,0.1", help="taa: tangent-plane tolerances (0: no test)")
+    ap.add_argument("--tolerances", default="0,0.02,0.1", help="taa, accumulate: tangent-plane tolerances (0: no "
+                    "test)")
+    ap.add_argument("--samples", default="2,4,8,16", help="accumulate: samples per pixel to accumulate up to (a "
+                    "frame of n spp keeps at most S / n frames)")
+    ap.add_argument("--clamps", default="2,4,8", help="accumulate: the history's clamp factors (0: none)")
     ap.add_argument("--level-slack", type=float, default=0.02,
                     help="taa: how much further from 1 than off's a chosen setting's level may be "
                     "(every rate, channel)")
@@ -354,9 +400,9 @@ def main() -> None:
                     help="taa: more validation fly-throughs scored beside --val-data (comma list; '' for none)")
     args = ap.parse_args()
     out = Path(args.out)
-    if args.what == "taa":
-        res = choose_taa(args)
-        write_json(out / "taa.json", res)
+    if args.what in ("taa", "accumulate"):
+        res = choose_taa(args) if args.what == "taa" else choose_accumulate(args)
+        write_json(out / f"{args.what}.json", res)
         print("chosen:", res["chosen"])
         return
     if args.what == "exact":

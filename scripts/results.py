@@ -327,9 +327,9 @@ def rae_frames(results: Path, rel: str, methods: list[str]) -> str:
 bind("rae-temporal-means", rae_temporal_means, "rae_temporal.json", ["input", "oidn", "rae", "rae-per-frame"])
 # issue 34: the scene library's evaluation fly-throughs, the rate-general rae against the paper's recipe
 bind("rae-rates-temporal", rae_temporal_means, "rae_rates/temporal.json",
-     ["input", "oidn", "oidn+taa", "rae-paper", "rae-0.9.15", "rae-0.9.16", "rae"])
+     ["input", "oidn", "oidn+taa", "rae-paper", "rae-0.9.15", "rae-0.9.16", "rae-0.9.19", "rae"])
 bind("rae-rates-frames", rae_frames, "rae_rates/temporal.json",
-     ["oidn", "oidn+taa", "rae-paper", "rae-0.9.15", "rae-0.9.16", "rae", "rae-per-frame"])
+     ["oidn", "oidn+taa", "rae-paper", "rae-0.9.15", "rae-0.9.16", "rae-0.9.19", "rae", "rae-per-frame"])
 
 
 @renderer("rae-outlier-clamp")
@@ -386,10 +386,9 @@ def _rae_exact_pixels(results: Path) -> str:
             f"every frame; off unless that beats off's. Weights `{d['init']}`. Command: `{d['command']}`.")
 
 
-@renderer("rae-taa")
-def _rae_taa(results: Path) -> str:
-    """Temporal anti-aliasing settings measured on the validation fly-throughs (experiments/rae_rates.py taa)."""
-    d = load(results, "rae_rates/taa.json")
+def _temporal_choice_table(d: dict, legend: str) -> str:
+    """A setting's row per setting of an ``experiments/rae_rates.py`` temporal choice (``taa``, ``accumulate``):
+    score and, per rate, RelMSE / temporal error / level; ``legend`` says what the labels mean."""
     spps = sorted(d["settings"]["off"]["per_spp"], key=int)
     rows = [[("**" + k + "**" if k == d["chosen"] else k), num(r["score"], ".4g")]
             + [f"{num(r['per_spp'][x]['relmse'], '.4g')} / {num(r['per_spp'][x]['temporal'], '.4g')} / "
@@ -397,16 +396,40 @@ def _rae_taa(results: Path) -> str:
             for k, r in d["settings"].items()]
     return (table(["setting", "score", *(f"{x} spp: RelMSE / temporal error / level R/G/B" for x in spps)], rows,
                   "lr" + "r" * len(spps))
-            + "\n\nSettings: off, or aA wW tT = `taa_alpha` A (history capped at 1 / A frames), the clamp's "
-            "W x W neighbourhood (0: no clamp), the tangent-plane tolerance T (a fraction of the depth; 0: no "
-            "geometric test). Per rate: the means over the validation fly-throughs (state carried) of their frames' "
-            "mean RelMSE and of their temporal error, and the colour level of their frames after the first (per "
+            + f"\n\nSettings: {legend} Per rate: the means over the validation fly-throughs (state carried) of their "
+            "frames' mean RelMSE and of their temporal error, and the colour level of their frames after the first (per "
             "channel, the median over those frames of the median box-mean ratio over every lit pixel). Score: the "
             "geometric mean over fly-throughs and rates of sqrt(RelMSE x temporal error). Chosen (bold): the lowest "
             "score among the settings whose RelMSE at every rate is at most off's and whose level is at most "
             f"{d['level_slack']:g} further from 1 than off's (every rate and channel); off unless that beats off's. "
             f"{d['sequences']} sequences from "
             f"{', '.join(f'`{x}`' for x in d['folders'])}; weights `{d['init']}`. Command: `{d['command']}`.")
+
+
+@renderer("rae-taa")
+def _rae_taa(results: Path) -> str:
+    """Temporal anti-aliasing settings measured on the validation fly-throughs (experiments/rae_rates.py taa)."""
+    return _temporal_choice_table(load(results, "rae_rates/taa.json"), (
+        "off, or aA wW tT = `taa_alpha` A (history capped at 1 / A frames), the clamp's W x W neighbourhood (0: no "
+        "clamp), the tangent-plane tolerance T (a fraction of the depth; 0: no geometric test)."))
+
+
+@renderer("rae-accumulate")
+def _rae_accumulate(results: Path) -> str:
+    """Input accumulation settings measured on the validation fly-throughs (experiments/rae_rates.py accumulate)."""
+    return _temporal_choice_table(load(results, "rae_rates/accumulate/accumulate.json"), (
+        "off, or sS tT cC = `accumulate_samples` S (a frame of n spp keeps at most S / n frames of history: at "
+        "n >= S none, so those rows repeat off's), the tangent-plane tolerance T (a fraction of the depth), the "
+        "history's clamp at C x the larger of the frame's level and its 3x3 maximum."))
+
+
+@renderer("rae-accumulate-knee")
+def _rae_accumulate_knee(results: Path) -> str:
+    """The first accumulation grid: Karis's weights on the history's bilinear taps, no clamp (dropped)."""
+    return _temporal_choice_table(load(results, "rae_rates/accumulate/knee/accumulate.json"), (
+        "off, or aA tT kK = a history of at most 1 / A frames at every rate, the tangent-plane tolerance T, the "
+        "history's four bilinear taps weighed by 1 / (1 + luminance / (K x the frame's level)) (a version of "
+        "`accumulate_step` measured and replaced: these labels' fields no longer exist)."))
 
 
 @renderer("rae-input-arms")

@@ -450,6 +450,50 @@ def test_rate_channel_and_linear_input():
         rae.needs(rae.Config(input_transform="log"))
 
 
+def test_accumulate_setting():
+    """``accumulate_samples`` (`jaxdenoise.filters.accumulate_step`): the state carries the input's history
+    after the recurrent one; each frame's network sees the accumulated colour (at most samples / spp
+    frames) and, with the rate channel, its samples times the frames averaged per pixel, as a frame
+    carrying them would; `apply` is unchanged; `needs` adds what reprojection reads; bad settings are
+    refused by their config names."""
+    from jaxdenoise.filters import accumulate_step, taa_init
+
+    cfg = dataclasses.replace(TINY, rate_input=True)
+    on = dataclasses.replace(cfg, accumulate_samples=2.0, accumulate_tolerance=0.05, accumulate_clamp=4.0)
+    assert {"position", "normal", "world_to_ndc"} <= rae.needs(on) and "world_to_ndc" not in rae.required(on)
+    p = rae.init(jax.random.PRNGKey(5), cfg)
+    cam = np.eye(4, dtype=np.float32)
+    cam[2, 2], cam[3, 2], cam[3, 3] = 0.0, 1.0, 0.0  # a pinhole: w = z
+    frames = []
+    for s in range(3):
+        f = _frame(16, 12, seed=s)
+        pos = np.asarray(f.position).copy()
+        pos[..., 2] = np.abs(pos[..., 2]) + 2.0
+        frames.append(f.replace(position=pos, world_to_ndc=cam + np.float32(0.01 * s)))
+    s_off, s_on, acc = rae.init_state(frames[0], cfg), rae.init_state(frames[0], on), taa_init((16, 12, 3))
+    assert len(s_on) == len(s_off) + 1
+    lengths = []
+    for f in frames:
+        acc, mean, n = accumulate_step(acc, f.color, f.position, f.normal, f.world_to_ndc, frames=2.0,
+                                       tolerance=0.05, clamp=4.0)
+        s_off, want = rae.step(p, s_off, f.replace(color=mean, spp_map=np.asarray(n)), cfg)
+        s_on, out = rae.step(p, s_on, f, on)
+        np.testing.assert_allclose(np.asarray(out), np.asarray(want), rtol=1e-5, atol=1e-6)
+        for a, b in zip(s_off, s_on[:-1]):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-6)
+        lengths.append(float(np.max(n)))
+    assert lengths == [1.0, 2.0, 2.0]  # history read somewhere; capped at 2 frames (2 samples at 1 spp)
+    np.testing.assert_array_equal(np.asarray(rae.apply(p, frames[2], on)), np.asarray(rae.apply(p, frames[2], cfg)))
+    at2 = [f.replace(spp=2) for f in frames]  # a frame of `accumulate_samples` spp keeps no history
+    s_off, s_on = rae.init_state(at2[0], cfg), rae.init_state(at2[0], on)
+    for f in at2:
+        s_off, want = rae.step(p, s_off, f, cfg)
+        s_on, out = rae.step(p, s_on, f, on)
+        np.testing.assert_allclose(np.asarray(out), np.asarray(want), rtol=1e-6, atol=1e-7)
+    with pytest.raises(ValueError, match="config.accumulate_samples"):
+        rae.num_params(dataclasses.replace(on, accumulate_samples=-1.0))
+
+
 def test_taa_setting():
     """``taa_alpha`` (`jaxdenoise.filters.taa_step`): the state carries the TAA history beside the
     recurrent one; each frame is the network's output without TAA passed through `taa_step` with the

@@ -1,12 +1,14 @@
 """Temporal anti-aliasing (`jaxdenoise.filters.taa_step`): reprojection through positions and cameras,
-the running mean, the clamp, disocclusions, exposure, bad settings; and `rae`'s `taa_alpha`."""
+the running mean, the clamp, disocclusions, exposure, bad settings; and `rae`'s `taa_alpha`. The input
+accumulation (`jaxdenoise.filters.accumulate_step`): an unweighted running mean, the taps' HDR weights,
+disocclusions, exposure, leading axes, bad settings."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
 from jaxdenoise import color
-from jaxdenoise.filters import FilterError, check_taa_settings, reproject, taa_init, taa_step
+from jaxdenoise.filters import FilterError, accumulate_step, check_taa_settings, reproject, taa_init, taa_step
 
 H, W = 6, 8
 
@@ -118,3 +120,71 @@ def test_bad_inputs_are_refused_by_name():
     bad[0, 0, 0] = np.nan
     with pytest.raises(FilterError, match="'position' has 1 NaN"):
         taa_step(taa_init((H, W, 3)), pos, bad, nrm, cam)
+
+
+def test_accumulation_is_an_unweighted_running_mean_then_exponential():
+    pos, nrm, cam = plane()
+    frames = np.random.default_rng(5).random((6, H, W, 3)).astype(np.float32)
+    frames[2, 1, 1] = 5.0  # a bright sample counts as any sample (below the clamp): the mean stays unbiased
+    state, outs = taa_init((H, W, 3)), []
+    for k, f in enumerate(frames):
+        state, o, n = accumulate_step(state, f, pos, nrm, cam, frames=4, tolerance=0.02, clamp=0)
+        np.testing.assert_array_equal(np.asarray(n), min(k + 1, 4))
+        outs.append(np.asarray(o))
+    for k in range(4):
+        np.testing.assert_allclose(outs[k], frames[:k + 1].mean(0), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(outs[4], 0.25 * frames[4] + 0.75 * outs[3], rtol=1e-5, atol=1e-6)
+    cap = np.full((H, W, 1), 4.0, np.float32)
+    cap[:, :4] = 1.0  # per pixel: the left half keeps no history
+    s, _, _ = accumulate_step(taa_init((H, W, 3)), frames[0], pos, nrm, cam, frames=cap)
+    _, o, n = accumulate_step(s, frames[1], pos, nrm, cam, frames=cap, clamp=0)
+    np.testing.assert_array_equal(np.asarray(o)[:, :4], frames[1][:, :4])
+    np.testing.assert_array_equal(np.asarray(n)[:, 4:], 2.0)
+
+
+def test_accumulation_clamps_a_bright_history_and_rejects_disocclusions():
+    pos, nrm, cam = plane()
+    old = np.full((H, W, 3), 0.1, np.float32)
+    old[:, 4] = 1000.0  # a light's column
+    half = pos + np.asarray([0.5 * 2 / W, 0.0, 0.0], np.float32)  # half a pixel to the right: two equal taps
+    cur = np.full((H, W, 3), 0.1, np.float32)
+    state, _, _ = accumulate_step(taa_init((H, W, 3)), old, pos, nrm, cam, frames=2)
+    _, plain, _ = accumulate_step(state, cur, half, nrm, cam, frames=2, clamp=0)
+    np.testing.assert_allclose(np.asarray(plain)[:, 3], 0.5 * 0.1 + 0.5 * (0.5 * 0.1 + 0.5 * 1000.0), rtol=1e-5)
+    _, clamped, _ = accumulate_step(state, cur, half, nrm, cam, frames=2, clamp=4.0)
+    np.testing.assert_allclose(np.asarray(clamped)[:, 3], 0.5 * 0.1 + 0.5 * 4 * 0.1, rtol=1e-5)  # 4x the 3x3 max
+    np.testing.assert_allclose(np.asarray(clamped)[:, 0], 0.1, rtol=1e-5)  # below the bound: untouched
+    near = pos.copy()
+    near[:3, ..., 2] = 0.5  # the top rows see a surface in front of the old one
+    _, out, n = accumulate_step(state, cur, near, nrm, cam, frames=2, tolerance=0.02)
+    np.testing.assert_array_equal(np.asarray(out)[:3], cur[:3])
+    np.testing.assert_array_equal(np.asarray(n)[:3], 1.0)
+    np.testing.assert_array_equal(np.asarray(n)[3:], 2.0)
+
+
+def test_accumulation_exposure_leading_axes_and_bad_settings():
+    pos, nrm, cam = plane()
+    a, b = np.random.default_rng(6).random((2, H, W, 3)).astype(np.float32)
+    a[2, 3] = 40.0  # a spike the next frame's clamp cuts
+    moved = pos + np.asarray([0.3 / W, 0.0, 0.0], np.float32)
+
+    def two(k, x=a, y=b):
+        s, _, _ = accumulate_step(taa_init((H, W, 3)), k * x, pos, nrm, cam, frames=5)
+        return np.asarray(accumulate_step(s, k * y, moved, nrm, cam, frames=5, clamp=2.0)[1])
+    base = two(1.0)
+    for k in (1 / 16, 16.0):
+        np.testing.assert_allclose(two(k), k * base, rtol=1e-5, atol=1e-7)
+    s, _, _ = accumulate_step(taa_init((2, H, W, 3)), np.stack([a, b]), np.stack([pos, pos]), np.stack([nrm, nrm]),
+                              cam, frames=5)
+    _, both, n = accumulate_step(s, np.stack([b, a]), np.stack([moved, moved]), np.stack([nrm, nrm]), cam,
+                                 frames=5, clamp=2.0)
+    np.testing.assert_allclose(np.asarray(both), np.stack([base, two(1.0, b, a)]), rtol=1e-6)
+    assert np.shape(n) == (2, H, W, 1)
+    for kw, name in (({"frames": np.nan}, "'frames'"), ({"tolerance": -1.0}, "'tolerance'"),
+                     ({"clamp": np.inf}, "'clamp'")):
+        with pytest.raises(FilterError, match=name):
+            accumulate_step(taa_init((H, W, 3)), a, pos, nrm, cam, **kw)
+    with pytest.raises(FilterError, match="'normal' is None"):
+        accumulate_step(taa_init((H, W, 3)), a, pos, None, cam)
+    with pytest.raises(FilterError, match="history"):
+        accumulate_step(taa_init((H + 1, W, 3)), a, pos, nrm, cam)

@@ -10,7 +10,8 @@ gradients); `check_match_settings` refuses a network config's settings for `matc
 `exact_mask` (a boolean mask, not a filter) says where a frame's estimate is exact, for a denoiser to keep
 its input there; `check_exact_window` refuses a config's window for it. `taa_step` (with `taa_init`,
 `reproject`, `TaaState`, `check_taa_settings`) is temporal anti-aliasing over a sequence's outputs: a
-state carried from frame to frame, not a filter of one image. `refine` (with `check_refine_settings`)
+state carried from frame to frame, not a filter of one image; `accumulate_step` carries the same state to
+average a sequence's noisy inputs over frames (no clamp, no HDR weights). `refine` (with `check_refine_settings`)
 is a feature-guided cross-bilateral pass over a network's output, any leading axes, static settings.
 """
 from ._common import FilterError
@@ -22,13 +23,14 @@ from .level import check_match_settings, match_level, match_to_input
 from .nlm import cross_nlm, prefilter_features
 from .refine import check_refine_settings, refine
 from .spikes import clamp_outliers, remove_spikes
-from .taa import TaaState, check_taa_settings, hdr_weight, reproject, taa_init, taa_step
+from .taa import TaaState, accumulate_step, check_taa_settings, hdr_weight, reproject, taa_init, taa_step
 
 __all__ = [
     "DELTA",
     "FilterError",
     "TaaState",
     "ZETA",
+    "accumulate_step",
     "bilateral",
     "check_exact_window",
     "check_match_settings",

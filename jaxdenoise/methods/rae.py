@@ -61,8 +61,8 @@ import numpy as np
 from .. import color, metrics, nn, view
 from ..buffers import SAMPLE_COUNT_FIELD, Buffers
 from ..errors import JaxdenoiseError
-from ..filters import (check_exact_window, check_match_settings, check_refine_settings, check_taa_settings,
-                       clamp_outliers, exact_mask, match_to_input, refine, taa_init, taa_step)
+from ..filters import (accumulate_step, check_exact_window, check_match_settings, check_refine_settings,
+                       check_taa_settings, clamp_outliers, exact_mask, match_to_input, refine, taa_init, taa_step)
 from ..pipeline import carried_stat, carried_stats
 
 __all__ = ["Config", "needs", "required", "init", "apply", "init_state", "step", "loss", "run_sequence", "inputs",
@@ -145,6 +145,18 @@ class Config:
     # Carried in the state beside the recurrent one; a single frame (`apply`) is unchanged, and a frame
     # without `world_to_ndc` (not required) gets no TAA.
     taa_alpha: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})
+    # Input accumulation (ours, issue 34; docs/methods/rae.md "Input accumulation"): with `accumulate_samples`
+    # S > 0 each frame's noisy colour (its outliers cut first when `outlier_clamp` is on) is averaged with the
+    # previous frames' reprojected through the world positions and cameras (`jaxdenoise.filters.accumulate_step`:
+    # a running mean of at most S / spp frames per pixel, so a frame of S spp or more keeps no history; no
+    # luminance weights; taps off the pixel's tangent plane by more than `accumulate_tolerance` of the depth
+    # dropped; the history's luminance limited to `accumulate_clamp` x the larger of the frame's level and
+    # the current 3x3 maximum) before the network, whose rate channel then reads each pixel's samples times
+    # the frames averaged; the level match's target is that mean. Carried in the state after the recurrent
+    # one (before TAA's); a single frame (`apply`) and a frame without `world_to_ndc` get none. Inference only.
+    accumulate_samples: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})
+    accumulate_tolerance: float = dataclasses.field(default=0.02, metadata={"fine_tune": True})
+    accumulate_clamp: float = dataclasses.field(default=4.0, metadata={"fine_tune": True})
     taa_window: int = dataclasses.field(default=3, metadata={"fine_tune": True})
     taa_tolerance: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})
     # Refinement (ours, issue 34; DEMC's, `jaxdenoise.methods.demc.Config.refine_sigma`; docs/methods/rae.md
@@ -226,6 +238,11 @@ def _check(config: Config) -> None:
     check_exact_window("rae: config.exact_window", config.exact_window)
     if config.taa_alpha:
         check_taa_settings("rae: config.", config.taa_alpha, config.taa_window, config.taa_tolerance)
+    a, t, k = config.accumulate_samples, config.accumulate_tolerance, config.accumulate_clamp
+    if not all(isinstance(v, (int, float)) and 0 <= v < float("inf") for v in (a, t, k)):
+        raise JaxdenoiseError(f"rae: config.accumulate_samples (0: off), config.accumulate_tolerance (a fraction of "
+                              f"the depth) and config.accumulate_clamp (0: off) must be finite numbers >= 0, got "
+                              f"{a!r}, {t!r} and {k!r}")
     if config.refine_sigma:
         check_refine_settings("rae: config.", config.refine_sigma, config.refine_range, config.refine_albedo,
                               config.refine_normal)
@@ -259,11 +276,11 @@ def needs(config: Config) -> frozenset[str]:
         out.add("position")
     if "roughness" in config.aux:
         out.add("roughness")
-    if config.rate_input:
+    if config.rate_input or config.accumulate_samples:
         out.add("spp")
     if config.keep_exact:
         out.add("color_var")
-    if config.taa_alpha:
+    if config.taa_alpha or config.accumulate_samples:
         out |= {"position", "normal", "world_to_ndc"}
     if config.refine_sigma:
         out.add("normal")
@@ -479,20 +496,42 @@ def _output(y: jax.Array, albedo: Any, scale: Any, config: Config) -> jax.Array:
 
 def init_state(buffers: Buffers, config: Config) -> tuple:
     """Zero hidden states of the six recurrent blocks for frames of ``buffers``' size (a `Buffers` or a
-    dict frame), and with ``taa_alpha`` the TAA history (`jaxdenoise.filters.taa_init`: none yet) last."""
+    dict frame), then with ``accumulate_samples`` the input's history and with ``taa_alpha`` TAA's
+    (`jaxdenoise.filters.taa_init`: none yet)."""
     shape = tuple(np.shape(_get(buffers, "color")))
     hidden = tuple(jnp.zeros(s, jnp.float32) for s in _state_shapes(config, shape[:-3], shape[-3], shape[-2]))
-    return hidden + (taa_init(shape[:-1] + (3,)),) if config.taa_alpha else hidden
+    histories = (config.accumulate_samples, config.taa_alpha)
+    return hidden + tuple(taa_init(shape[:-1] + (3,)) for on in histories if on)
 
 
 def step(params: dict, state: tuple, buffers: Buffers, config: Config) -> tuple[tuple, jax.Array]:
     """Denoise the next frame of a sequence; returns the new state and the HDR image."""
     scale = exposure_scale(buffers, config)
-    x, size = nn.pad_to_multiple(inputs(buffers, config, scale), 32)
-    hidden, taa = (state[:-1], state[-1]) if config.taa_alpha else (state, None)
-    hidden, y = _forward(params, x, hidden, config)
-    out = jnp.maximum(_output(nn.crop_to(y, size), _get(buffers, "albedo"), scale, config), 0.0)
+    n_hidden = len(config.widths) + 1
+    hidden, histories = tuple(state[:n_hidden]), list(state[n_hidden:])
+    taa = histories.pop() if config.taa_alpha else None
+    acc = histories.pop() if config.accumulate_samples else None
     c = color.radiance(_get(buffers, "color"))
+    projection = _get(buffers, "world_to_ndc", optional=True)
+    target, frame = c, buffers
+    if config.accumulate_samples and projection is not None:  # without its projection: the history kept
+        cut = c if not config.outlier_clamp else \
+            clamp_outliers(c * scale, config.outlier_clamp, color.EXPOSURE_LEVEL) / scale
+        fields = buffers.to_dict() if isinstance(buffers, Buffers) else dict(buffers)
+        spp = fields.get(SAMPLE_COUNT_FIELD)
+        if spp is None and fields.get("spp") is None:
+            raise JaxdenoiseError("rae: config.accumulate_samples needs the frame's sample count ('spp'); it is "
+                                  "never guessed")
+        spp = jnp.asarray(fields["spp"] if spp is None else spp, jnp.float32)
+        spp = spp if spp.ndim >= 3 else spp.reshape(spp.shape + (1,) * 3)
+        acc, target, length = accumulate_step(acc, cut, _get(buffers, "position"), _get(buffers, "normal"),
+                                              projection, frames=config.accumulate_samples / jnp.maximum(spp, 1.0),
+                                              tolerance=config.accumulate_tolerance, clamp=config.accumulate_clamp)
+        frame = fields | {"color": target, SAMPLE_COUNT_FIELD: spp * length}
+    x, size = nn.pad_to_multiple(inputs(frame, config, scale), 32)
+    hidden, y = _forward(params, x, hidden, config)
+    hidden = hidden + ((acc,) if config.accumulate_samples else ())
+    out = jnp.maximum(_output(nn.crop_to(y, size), _get(buffers, "albedo"), scale, config), 0.0)
     if config.keep_exact:  # exact pixels kept before TAA and the level match, and after them
         exact = exact_mask(_get(buffers, "color"), _get(buffers, "color_var", optional=True),
                            _get(buffers, "spp", optional=True), window=config.exact_window)
@@ -505,14 +544,13 @@ def step(params: dict, state: tuple, buffers: Buffers, config: Config) -> tuple[
         out = clamp_outliers(out * scale, config.output_clamp, 1e-3 * color.EXPOSURE_LEVEL,
                              radius=config.output_clamp_radius) / scale
     if config.taa_alpha:  # before the match, which puts TAA's result at the input's level
-        projection = _get(buffers, "world_to_ndc", optional=True)
         if projection is not None:  # a frame without its camera's projection: no TAA, the history kept
             taa, out = taa_step(taa, out, _get(buffers, "position"), _get(buffers, "normal"), projection,
                                 alpha=config.taa_alpha, window=config.taa_window, tolerance=config.taa_tolerance)
         hidden = hidden + (taa,)
     if config.match_level:
         spp = _get(buffers, "spp", optional=True) if config.match_spike_by_rate else None
-        out = match_to_input(out * scale, c * scale, config.match_level, spike=config.match_spike,
+        out = match_to_input(out * scale, target * scale, config.match_level, spike=config.match_spike,
                              floor=color.EXPOSURE_LEVEL, max_gain=config.match_max_gain or float("inf"),
                              spp=spp) / scale
     if config.keep_exact and (config.match_level or config.taa_alpha or config.refine_sigma
@@ -522,9 +560,9 @@ def step(params: dict, state: tuple, buffers: Buffers, config: Config) -> tuple[
 
 
 def apply(params: dict, buffers: Buffers, config: Config) -> jax.Array:
-    """A single frame (or a batch of independent frames): the first step from a zero state. TAA is
-    left out: without a history it returns the frame as it is (`jaxdenoise.filters.taa_step`)."""
-    config = dataclasses.replace(config, taa_alpha=0.0)
+    """A single frame (or a batch of independent frames): the first step from a zero state. TAA and the
+    input accumulation are left out: without a history each returns the frame as it is."""
+    config = dataclasses.replace(config, taa_alpha=0.0, accumulate_samples=0.0)
     return step(params, init_state(buffers, config), buffers, config)[1]
 
 

@@ -440,6 +440,16 @@ def _taa(b: Buffers, p):
     return f.taa_step(state, b.color, b.position, b.normal, cam, alpha=alpha)[1]
 
 
+def _accumulate(b: Buffers, p):
+    """Two accumulation steps under one camera (world = NDC), the colour both times (a running mean of
+    reprojected pixels of it, the history's clamp at 4x off: convex); at most ``1 + p`` frames (p inf:
+    refused), tangent-plane tolerance 0.02."""
+    f, cam = _filters_mod(), np.eye(4, dtype=np.float32)
+    one = lambda st: f.accumulate_step(st, b.color, b.position, b.normal, cam, frames=1.0 + p,  # noqa: E731
+                                       tolerance=0.02, clamp=0.0)
+    return one(one(f.taa_init(np.shape(b.color)))[0])[1]
+
+
 def _prefiltered(b: Buffers, p):
     f, v = _filters_mod().prefilter_features(b.position, b.position_var, radius=RADIUS, patch_radius=1, lam=p)
     return jnp.concatenate([f, v], -1)
@@ -488,6 +498,9 @@ FILTERS: dict[str, FilterSpec] = {
         grad_field="albedo"),
     # the history is clamped to the frame's 3x3 range, then blended with the frame: convex
     "taa_step": FilterSpec(_taa, frozenset({"color", "position", "normal"}), ("alpha",), static_param=True),
+    # a running mean of the frame and its reprojected history (itself such a mean): convex
+    "accumulate_step": FilterSpec(_accumulate, frozenset({"color", "position", "normal"}), ("frames",),
+                                  static_param=True),
     # a normalised cross-bilateral average of the image's pixels: convex; range_sigma = p + 1e-3 (it must be > 0)
     "refine": FilterSpec(
         lambda b, p: _filters_mod().refine(b.color, b.albedo, b.normal, sigma=1.0, range_sigma=p + 1e-3,
