@@ -320,34 +320,25 @@ def _temporal_choice(args, base, params, seqs, settings: dict[str, dict], res: d
     return res
 
 
-def choose_taa(args) -> dict:
-    """The ``taa`` subcommand (module docstring): RelMSE and temporal error of each TAA setting of the
-    weights in ``--init`` on the validation fly-throughs, then the rule."""
+def choose_temporal(args) -> dict:
+    """The ``taa`` and ``accumulate`` subcommands (module docstring): RelMSE, temporal error and level of
+    each setting of the weights in ``--init`` on the validation fly-throughs, then TAA's rule."""
     from jaxdenoise.api import resolve
 
     base, params = resolve("rae", args.init)
     folders, seqs = _validation_sequences(args, base)
-    settings = {"off": {"taa_alpha": 0.0}}
-    settings |= {f"a{a:g} w{w} t{t:g}": {"taa_alpha": a, "taa_window": w, "taa_tolerance": t}
-                 for a in (float(x) for x in args.alphas.split(","))
-                 for w in (int(x) for x in args.taa_windows.split(","))
-                 for t in (float(x) for x in args.tolerances.split(","))}
-    res = {"init": args.init, "folders": folders, "sequences": len(seqs), "level_slack": args.level_slack}
-    return _temporal_choice(args, base, params, seqs, settings, res)
-
-
-def choose_accumulate(args) -> dict:
-    """The ``accumulate`` subcommand (module docstring): TAA's rule over the input accumulation's settings
-    (`jaxdenoise.methods.rae.Config.accumulate_*`) of the weights and settings in ``--init``."""
-    from jaxdenoise.api import resolve
-
-    base, params = resolve("rae", args.init)
-    folders, seqs = _validation_sequences(args, base)
-    settings = {"off": {"accumulate_samples": 0.0}}
-    settings |= {f"s{n:g} t{t:g} c{c:g}": {"accumulate_samples": n, "accumulate_tolerance": t, "accumulate_clamp": c}
-                 for n in (float(x) for x in args.samples.split(","))
-                 for t in (float(x) for x in args.tolerances.split(","))
-                 for c in (float(x) for x in args.clamps.split(","))}
+    tolerances = [float(x) for x in args.tolerances.split(",")]
+    if args.what == "taa":
+        settings = {"off": {"taa_alpha": 0.0}}
+        settings |= {f"a{a:g} w{w} t{t:g}": {"taa_alpha": a, "taa_window": w, "taa_tolerance": t}
+                     for a in (float(x) for x in args.alphas.split(","))
+                     for w in (int(x) for x in args.taa_windows.split(",")) for t in tolerances}
+    else:
+        settings = {"off": {"accumulate_samples": 0.0}}
+        settings |= {f"s{n:g} t{t:g} c{c:g}": {"accumulate_samples": n, "accumulate_tolerance": t,
+                                                "accumulate_clamp": c}
+                     for n in (float(x) for x in args.samples.split(","))
+                     for t in tolerances for c in (float(x) for x in args.clamps.split(","))}
     res = {"init": args.init, "folders": folders, "sequences": len(seqs), "level_slack": args.level_slack}
     return _temporal_choice(args, base, params, seqs, settings, res)
 
@@ -401,7 +392,7 @@ def main() -> None:
     args = ap.parse_args()
     out = Path(args.out)
     if args.what in ("taa", "accumulate"):
-        res = choose_taa(args) if args.what == "taa" else choose_accumulate(args)
+        res = choose_temporal(args)
         write_json(out / f"{args.what}.json", res)
         print("chosen:", res["chosen"])
         return

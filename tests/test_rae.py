@@ -450,6 +450,19 @@ def test_rate_channel_and_linear_input():
         rae.needs(rae.Config(input_transform="log"))
 
 
+def _pinhole_frames(n: int) -> list:
+    """``n`` 16x12 frames of `_frame` in front of a pinhole camera (w = z) that moves a little per frame."""
+    cam = np.eye(4, dtype=np.float32)
+    cam[2, 2], cam[3, 2], cam[3, 3] = 0.0, 1.0, 0.0
+    frames = []
+    for s in range(n):
+        f = _frame(16, 12, seed=s)
+        pos = np.asarray(f.position).copy()
+        pos[..., 2] = np.abs(pos[..., 2]) + 2.0  # in front of the camera
+        frames.append(f.replace(position=pos, world_to_ndc=cam + np.float32(0.01 * s)))
+    return frames
+
+
 def test_accumulate_setting():
     """``accumulate_samples`` (`jaxdenoise.filters.accumulate_step`): the state carries the input's history
     after the recurrent one; each frame's network sees the accumulated colour (at most samples / spp
@@ -462,14 +475,7 @@ def test_accumulate_setting():
     on = dataclasses.replace(cfg, accumulate_samples=2.0, accumulate_tolerance=0.05, accumulate_clamp=4.0)
     assert {"position", "normal", "world_to_ndc"} <= rae.needs(on) and "world_to_ndc" not in rae.required(on)
     p = rae.init(jax.random.PRNGKey(5), cfg)
-    cam = np.eye(4, dtype=np.float32)
-    cam[2, 2], cam[3, 2], cam[3, 3] = 0.0, 1.0, 0.0  # a pinhole: w = z
-    frames = []
-    for s in range(3):
-        f = _frame(16, 12, seed=s)
-        pos = np.asarray(f.position).copy()
-        pos[..., 2] = np.abs(pos[..., 2]) + 2.0
-        frames.append(f.replace(position=pos, world_to_ndc=cam + np.float32(0.01 * s)))
+    frames = _pinhole_frames(3)
     s_off, s_on, acc = rae.init_state(frames[0], cfg), rae.init_state(frames[0], on), taa_init((16, 12, 3))
     assert len(s_on) == len(s_off) + 1
     lengths = []
@@ -505,14 +511,7 @@ def test_taa_setting():
     assert {"position", "normal", "world_to_ndc"} <= rae.needs(on) and "world_to_ndc" not in rae.required(on)
     assert "world_to_ndc" not in rae.needs(TINY)
     p = rae.init(jax.random.PRNGKey(4), TINY)
-    cam = np.eye(4, dtype=np.float32)
-    cam[2, 2], cam[3, 2], cam[3, 3] = 0.0, 1.0, 0.0  # a pinhole: w = z
-    frames = []
-    for s in range(3):
-        f = _frame(16, 12, seed=s)
-        pos = np.asarray(f.position).copy()
-        pos[..., 2] = np.abs(pos[..., 2]) + 2.0  # in front of the camera
-        frames.append(f.replace(position=pos, world_to_ndc=cam + np.float32(0.01 * s)))
+    frames = _pinhole_frames(3)
     s_off, s_on, taa = rae.init_state(frames[0], TINY), rae.init_state(frames[0], on), taa_init((16, 12, 3))
     assert len(s_on) == len(s_off) + 1
     for k, f in enumerate(frames):

@@ -168,6 +168,35 @@ def _neighbourhood(x: jax.Array, window: int) -> tuple[jax.Array, jax.Array]:
     return lo, hi
 
 
+def _check_frame(owner: str, current: Any, position: Any, normal: Any, world_to_ndc: Any) -> bool:
+    """Refuse a missing or non-finite argument of `taa_step` / `accumulate_step` (``owner``) by name; True
+    when ``current`` has leading axes (the caller then maps itself over them; inside that map the values
+    are traced, so the images are checked here, else by `as_image`)."""
+    args = (("current", current), ("position", position), ("normal", normal), ("world_to_ndc", world_to_ndc))
+    for name, a in args:
+        if a is None:
+            raise FilterError(f"{owner}: argument '{name}' is None; it reprojects through the world positions, "
+                              f"normals and camera of every frame")
+    require_finite(world_to_ndc, "world_to_ndc")
+    if np.ndim(current) <= 3:
+        return False
+    for name, a in args[:3]:
+        require_finite(a, name)
+    return True
+
+
+def _one_frame(owner: str, state: TaaState, current: Any, world_to_ndc: Any) -> tuple[jax.Array, jax.Array]:
+    """``current`` as a checked float32 image of the history's shape and ``world_to_ndc`` as a (4, 4) matrix."""
+    x = as_image(current, "current").astype(jnp.float32)
+    if state.image.shape != x.shape:
+        raise FilterError(f"{owner}: the frame has shape {tuple(x.shape)} but the carried history "
+                          f"{tuple(state.image.shape)}")
+    m = jnp.asarray(world_to_ndc, jnp.float32)
+    if m.shape != (4, 4):
+        raise FilterError(f"{owner}: argument 'world_to_ndc' has shape {tuple(m.shape)}; expected (4, 4)")
+    return x, m
+
+
 def taa_step(state: TaaState, current: Any, position: Any, normal: Any, world_to_ndc: Any, *,
              alpha: float = 0.25, window: int = 3, tolerance: float = 0.0) -> tuple[TaaState, jax.Array]:
     """One frame of TAA (module docstring): ``current`` ``(H, W, C)`` blended with ``state``'s
@@ -175,15 +204,7 @@ def taa_step(state: TaaState, current: Any, position: Any, normal: Any, world_to
     C)``, with ``world_to_ndc`` ``(4, 4)`` or ``(..., 4, 4)`` and a state from `taa_init` of the same
     shape) are independent sequences."""
     _check_settings(alpha, window, tolerance, ("argument 'alpha'", "argument 'window'", "argument 'tolerance'"))
-    args = (("current", current), ("position", position), ("normal", normal), ("world_to_ndc", world_to_ndc))
-    for name, a in args:
-        if a is None:
-            raise FilterError(f"taa: argument '{name}' is None; TAA reprojects through the world positions, "
-                              f"normals and camera of every frame")
-    require_finite(world_to_ndc, "world_to_ndc")  # the images are checked by `as_image` (or below)
-    if np.ndim(current) > 3:
-        for name, a in args[:3]:  # inside vmap the values are traced: checked here
-            require_finite(a, name)
+    if _check_frame("taa", current, position, normal, world_to_ndc):
         x = jnp.asarray(current, jnp.float32)
         lead = x.shape[:-3]
         m = jnp.broadcast_to(jnp.asarray(world_to_ndc, jnp.float32), lead + (4, 4))
@@ -193,13 +214,7 @@ def taa_step(state: TaaState, current: Any, position: Any, normal: Any, world_to
                                 flat(jnp.asarray(position, jnp.float32)), flat(jnp.asarray(normal, jnp.float32)),
                                 flat(m))
         return jax.tree_util.tree_map(lambda a: a.reshape(lead + a.shape[1:]), st), out.reshape(x.shape)
-    x = as_image(current, "current").astype(jnp.float32)
-    if state.image.shape != x.shape:
-        raise FilterError(f"taa: the frame has shape {tuple(x.shape)} but the carried history "
-                          f"{tuple(state.image.shape)}")
-    m = jnp.asarray(world_to_ndc, jnp.float32)
-    if m.shape != (4, 4):
-        raise FilterError(f"taa: argument 'world_to_ndc' has shape {tuple(m.shape)}; expected (4, 4)")
+    x, m = _one_frame("taa", state, current, world_to_ndc)
     level = jax.lax.stop_gradient(exposure_level(x))  # a frame statistic, as `color.exposure_scale` holds it
     knee = jnp.where(level > 1e-12, level, jnp.inf)  # a black frame: no weighting (every weight 1)
     hist, count, valid = reproject(state, position, normal, tolerance=tolerance, knee=knee)  # checks both
@@ -244,15 +259,7 @@ def accumulate_step(state: TaaState, current: Any, position: Any, normal: Any, w
             raise FilterError(f"argument '{name}' must be a finite number >= 0 (0: off), got {v!r}")
     if frames is None or (is_concrete(frames) and not np.all(np.isfinite(np.asarray(frames, np.float64)))):
         raise FilterError(f"argument 'frames' must be finite (the longest history, in frames), got {frames!r}")
-    args = (("current", current), ("position", position), ("normal", normal), ("world_to_ndc", world_to_ndc))
-    for name, a in args:
-        if a is None:
-            raise FilterError(f"accumulate: argument '{name}' is None; accumulation reprojects through the world "
-                              f"positions, normals and camera of every frame")
-    require_finite(world_to_ndc, "world_to_ndc")
-    if np.ndim(current) > 3:
-        for name, a in args[:3]:
-            require_finite(a, name)
+    if _check_frame("accumulate", current, position, normal, world_to_ndc):
         x = jnp.asarray(current, jnp.float32)
         lead = x.shape[:-3]
         m = jnp.broadcast_to(jnp.asarray(world_to_ndc, jnp.float32), lead + (4, 4))
@@ -265,13 +272,7 @@ def accumulate_step(state: TaaState, current: Any, position: Any, normal: Any, w
                                    flat(jnp.asarray(normal, jnp.float32)), flat(m), flat(cap))
         unflat = lambda a: a.reshape(lead + a.shape[1:])  # noqa: E731
         return jax.tree_util.tree_map(unflat, st), unflat(out), unflat(n)
-    x = as_image(current, "current").astype(jnp.float32)
-    if state.image.shape != x.shape:
-        raise FilterError(f"accumulate: the frame has shape {tuple(x.shape)} but the carried history "
-                          f"{tuple(state.image.shape)}")
-    m = jnp.asarray(world_to_ndc, jnp.float32)
-    if m.shape != (4, 4):
-        raise FilterError(f"accumulate: argument 'world_to_ndc' has shape {tuple(m.shape)}; expected (4, 4)")
+    x, m = _one_frame("accumulate", state, current, world_to_ndc)
     hist, count, valid = reproject(state, position, normal, tolerance=tolerance)  # checks both
     if clamp:
         level = jax.lax.stop_gradient(exposure_level(x))
