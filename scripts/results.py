@@ -397,8 +397,8 @@ def _temporal_choice_table(d: dict, legend: str) -> str:
     return (table(["setting", "score", *(f"{x} spp: RelMSE / temporal error / level R/G/B" for x in spps)], rows,
                   "lr" + "r" * len(spps))
             + f"\n\nSettings: {legend} Per rate: the means over the validation fly-throughs (state carried) of their "
-            "frames' mean RelMSE and of their temporal error, and the colour level of their frames after the first (per "
-            "channel, the median over those frames of the median box-mean ratio over every lit pixel). Score: the "
+            "frames' mean RelMSE and of their temporal error, and the colour level of their frames after the first "
+            "(per channel, the median over those frames of the median box-mean ratio over every lit pixel). Score: the "
             "geometric mean over fly-throughs and rates of sqrt(RelMSE x temporal error). Chosen (bold): the lowest "
             "score among the settings whose RelMSE at every rate is at most off's and whose level is at most "
             f"{d['level_slack']:g} further from 1 than off's (every rate and channel); off unless that beats off's. "

@@ -8,9 +8,10 @@ docs/methods/rae.md "Temporal anti-aliasing").
 
 ``taa_init(shape) -> TaaState``; ``taa_step(state, current, position, normal, world_to_ndc, *, alpha,
 window, tolerance) -> (state, out)``; ``reproject(state, position, normal, *, tolerance, knee) -> (image,
-count, valid)``; ``hdr_weight(x, knee)``; ``check_taa_settings(owner, alpha, window, tolerance)``; ``accumulate_step(state,
-current, position, normal, world_to_ndc, *, frames, tolerance, clamp) -> (state, mean, length)``: the same
-reprojection averaging a sequence's noisy inputs (no HDR weights, no neighbourhood clamp; its docstring).
+count, valid)``; ``hdr_weight(x, knee)``; ``check_taa_settings(owner, alpha, window, tolerance)``;
+``accumulate_step(state, current, position, normal, world_to_ndc, *, frames, tolerance, clamp) -> (state,
+mean, length)``: the same reprojection averaging a sequence's noisy inputs (no HDR weights, no
+neighbourhood clamp; its docstring).
 
 One step, for the frame ``t`` whose denoised output is ``current`` ``(H, W, C)``:
 

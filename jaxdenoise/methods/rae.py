@@ -133,18 +133,6 @@ class Config:
     # recurrent state is not touched; inference only.
     keep_exact: bool = dataclasses.field(default=False, metadata={"fine_tune": True})
     exact_window: int = dataclasses.field(default=0, metadata={"fine_tune": True})
-    # Temporal anti-aliasing (Sec. 5.4: "we apply TAA as a supplemental post-process pass to all
-    # methods. Our method also benefits from TAA"; its settings are not given, ours: docs/methods/rae.md
-    # "Temporal anti-aliasing"): with `taa_alpha` > 0 each output frame of a sequence is blended with the
-    # previous frames' result reprojected through the world positions and the cameras
-    # (`jaxdenoise.filters.taa_step`: a running mean capped at 1 / `taa_alpha` frames, colours weighted
-    # by Karis's 1 / (1 + luminance / the frame's level), the history clamped to the frame's `taa_window`
-    # x `taa_window` neighbourhood, and with `taa_tolerance` > 0 taps off the pixel's tangent plane by
-    # more than that fraction of the depth dropped), before the level match (which puts the result at the
-    # input's level: the weights favour darker colours); the history carries TAA's result, not the match's.
-    # Carried in the state beside the recurrent one; a single frame (`apply`) is unchanged, and a frame
-    # without `world_to_ndc` (not required) gets no TAA.
-    taa_alpha: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})
     # Input accumulation (ours, issue 34; docs/methods/rae.md "Input accumulation"): with `accumulate_samples`
     # S > 0 each frame's noisy colour (its outliers cut first when `outlier_clamp` is on) is averaged with the
     # previous frames' reprojected through the world positions and cameras (`jaxdenoise.filters.accumulate_step`:
@@ -157,6 +145,18 @@ class Config:
     accumulate_samples: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})
     accumulate_tolerance: float = dataclasses.field(default=0.02, metadata={"fine_tune": True})
     accumulate_clamp: float = dataclasses.field(default=4.0, metadata={"fine_tune": True})
+    # Temporal anti-aliasing (Sec. 5.4: "we apply TAA as a supplemental post-process pass to all
+    # methods. Our method also benefits from TAA"; its settings are not given, ours: docs/methods/rae.md
+    # "Temporal anti-aliasing"): with `taa_alpha` > 0 each output frame of a sequence is blended with the
+    # previous frames' result reprojected through the world positions and the cameras
+    # (`jaxdenoise.filters.taa_step`: a running mean capped at 1 / `taa_alpha` frames, colours weighted
+    # by Karis's 1 / (1 + luminance / the frame's level), the history clamped to the frame's `taa_window`
+    # x `taa_window` neighbourhood, and with `taa_tolerance` > 0 taps off the pixel's tangent plane by
+    # more than that fraction of the depth dropped), before the level match (which puts the result at the
+    # input's level: the weights favour darker colours); the history carries TAA's result, not the match's.
+    # Carried in the state beside the recurrent one; a single frame (`apply`) is unchanged, and a frame
+    # without `world_to_ndc` (not required) gets no TAA.
+    taa_alpha: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})
     taa_window: int = dataclasses.field(default=3, metadata={"fine_tune": True})
     taa_tolerance: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})
     # Refinement (ours, issue 34; DEMC's, `jaxdenoise.methods.demc.Config.refine_sigma`; docs/methods/rae.md
