@@ -359,6 +359,8 @@ def main() -> None:
     ap.add_argument("--level-weight", type=float, default=1.0, help="level: the level term's weight")
     ap.add_argument("--spike-weight", type=float, default=0.0, help="level: the spike term's weight "
                     "(`rae.Config.spike_weight`; 0: off)")
+    ap.add_argument("--train-accumulate", type=float, default=0.0, help="level: the share of sequence crops below "
+                    "the accumulation's sample count trained on accumulated colour (`rae.Config.train_accumulate`)")
     ap.add_argument("--seed", type=int, default=3, help="level: the crops' seed (the shipped run drew seed 0's)")
     ap.add_argument("--factors", default="0,1,1.5,2,3,4,8,16,32,64",
                     help="clamp: outlier-clamp factors to score, the first the reference (0: off)")
@@ -424,6 +426,9 @@ def main() -> None:
             name = f"level{args.level_weight:g}_lr{args.lr:g}_s{args.seed}"
             extra = {"spike_weight": args.spike_weight} if args.spike_weight else {}
             name += f"_spike{args.spike_weight:g}" if extra else ""
+            if args.train_accumulate:
+                extra["train_accumulate"] = args.train_accumulate
+                name += f"_acc{args.train_accumulate:g}"
             rec = _train_arm(arm, data, out, args, args.steps, name, level_weight=args.level_weight, **extra)
         else:
             name, rec = arm, _train_arm(arm, data, out, args, args.steps)

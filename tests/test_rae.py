@@ -500,6 +500,84 @@ def test_accumulate_setting():
         rae.num_params(dataclasses.replace(on, accumulate_samples=-1.0))
 
 
+def _plane_video(t: int, h: int, w: int, *, shift: float, seed: int = 0) -> dict:
+    """A ``t``-frame video ``(t, h, w, .)`` of the plane z = 5 seen by a pinhole camera (NDC = f (x, y) / z,
+    w = z) that moves ``shift`` pixels to the right per frame, one jittered sample per pixel: colour,
+    albedo, positions, normals, roughness and every frame's ``world_to_ndc``."""
+    r = np.random.default_rng(seed)
+    f, z = 1.5, 5.0
+    out = {k: [] for k in ("color", "albedo", "position", "normal", "world_to_ndc")}
+    for k in range(t):
+        rows, cols = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+        jx, jy = r.uniform(0.05, 0.95, (2, h, w))
+        ndc_x, ndc_y = (cols + jx) * 2 / w - 1, 1 - (rows + jy) * 2 / h
+        cx = k * shift * 2 / w * z / f  # the camera's x in the world
+        pos = np.stack([ndc_x * z / f + cx, ndc_y * z / f, np.full((h, w), z)], -1).astype(np.float32)
+        m = np.zeros((4, 4), np.float32)
+        m[0, 0], m[0, 3], m[1, 1], m[3, 2] = f, -f * cx, f, 1.0
+        out["position"].append(pos)
+        out["world_to_ndc"].append(m)
+        out["color"].append(r.exponential(0.3, (h, w, 3)).astype(np.float32))
+        out["albedo"].append(np.full((h, w, 3), 0.5, np.float32))
+        out["normal"].append(np.broadcast_to(np.float32([0, 0, -1]), (h, w, 3)).copy())
+    out["roughness"] = [np.full((h, w, 1), 0.5, np.float32)] * t
+    return {k: np.stack(v) for k, v in out.items()}
+
+
+def test_crop_projection_recovers_the_crops_window():
+    """`rae.crop_projection`: fitted from a crop's own positions, ``A @ world_to_ndc`` puts every pixel's
+    sample inside that pixel of the crop, for the frame and for a later frame of the same crop window."""
+    v = _plane_video(2, 24, 32, shift=3.0)
+    y0, x0, c = 5, 9, 12
+    crop = {k: v[k][:, y0:y0 + c, x0:x0 + c] for k in ("position", "normal")}
+    a = rae.crop_projection(crop["position"][0], crop["normal"][0], v["world_to_ndc"][0].astype(np.float64))
+    for t in range(2):
+        m = a @ v["world_to_ndc"][t]
+        p = crop["position"][t].astype(np.float64)
+        q = p @ m[:3, :3].T + m[:3, 3]
+        wq = p @ m[3, :3] + m[3, 3]
+        col = (q[..., 0] / wq + 1) / 2 * c - 0.5
+        row = (1 - q[..., 1] / wq) / 2 * c - 0.5
+        rows, cols = np.meshgrid(np.arange(c), np.arange(c), indexing="ij")
+        assert np.all(np.abs(col - cols) < 0.5) and np.all(np.abs(row - rows) < 0.5)
+    assert rae.crop_projection(crop["position"][0], np.zeros_like(crop["normal"][0]), v["world_to_ndc"][0]) is None
+
+
+class _Videos:
+    """A stand-in training set: `sequences` returns whole (un-augmented) crops of one video at ``spp``."""
+
+    def __init__(self, video: dict, spp: float, config):
+        self.video, self.spp, self.config = video, spp, config
+
+    def sequences(self, n, size, rng, *, frames, stop_probability, augment):
+        v = {k: np.repeat(x[None, :frames, :size, :size] if x.ndim == 4 else x[None, :frames], n, 0)
+             for k, x in self.video.items()}
+        v["reference"], v["spp"] = v["color"], np.full((n, frames), self.spp, np.float32)
+        v["world_to_camera"] = np.broadcast_to(np.eye(4, dtype=np.float32), (n, frames, 4, 4)).copy()
+        for name, fn in rae.frame_stats(self.config).items():
+            v[pipeline.STAT + name] = np.stack([[np.asarray(fn({k: x[i, t] for k, x in v.items()}))
+                                                 for t in range(frames)] for i in range(n)])
+        return v
+
+
+def test_training_on_accumulated_inputs():
+    """``train_accumulate``: a 1-spp training crop is given `step`'s accumulated colour and, in the rate
+    channel, each pixel's samples (1, 2, 3, then 4 frames: ``accumulate_samples`` 4); a crop at 4 spp
+    (``accumulate_samples``) and a run without it keep the colour as rendered; bad settings are refused."""
+    cfg = dataclasses.replace(TINY, exposure="frame", rate_input=True, accumulate_samples=4.0, train_accumulate=1.0,
+                              train_batch=2, train_crop=16, stop_probability=0.0)
+    v = _plane_video(7, 16, 16, shift=0.0)
+    rate = lambda b: b["x"][:, :, 6:10, 6:10, -1] * rae.RATE_SCALE  # noqa: E731  (interior pixels)
+    got = rate(rae.batch(_Videos(v, 1.0, cfg), 0, cfg, np.random.default_rng(0)))
+    want = np.log2(np.minimum(np.arange(1, 8), 4.0))
+    np.testing.assert_allclose(got, np.broadcast_to(want[None, :, None, None], got.shape), atol=1e-6)
+    plain = dataclasses.replace(cfg, train_accumulate=0.0)
+    np.testing.assert_array_equal(rate(rae.batch(_Videos(v, 1.0, plain), 0, plain, np.random.default_rng(0))), 0.0)
+    np.testing.assert_allclose(rate(rae.batch(_Videos(v, 4.0, cfg), 0, cfg, np.random.default_rng(0))), 2.0)
+    with pytest.raises(ValueError, match="config.train_accumulate"):
+        rae.num_params(dataclasses.replace(cfg, accumulate_samples=0.0))
+
+
 def test_taa_setting():
     """``taa_alpha`` (`jaxdenoise.filters.taa_step`): the state carries the TAA history beside the
     recurrent one; each frame is the network's output without TAA passed through `taa_step` with the

@@ -67,7 +67,7 @@ from ..pipeline import carried_stat, carried_stats
 
 __all__ = ["Config", "needs", "required", "init", "apply", "init_state", "step", "loss", "run_sequence", "inputs",
            "make_dataset", "batch", "frame_stats", "normalized_depth", "surface_mean", "exposure_scale",
-           "rate_channel", "INPUT_TRANSFORMS", "EXPOSURES", "RECIPES", "RATE_SCALE",
+           "rate_channel", "crop_projection", "INPUT_TRANSFORMS", "EXPOSURES", "RECIPES", "RATE_SCALE",
            "loss_terms", "log_kernel", "num_params", "TRAIN", "WEIGHTS", "AUX"]
 # Pixels of context a tile needs on each side (`jaxdenoise.tiling`), measured on a real frame
 # (docs/results/tiling/, re-measured with the 0.9.0 weights): max |tiled - whole| / (|whole| + 0.01)
@@ -196,6 +196,12 @@ class Config:
     spike_weight: float = dataclasses.field(default=0.0, metadata={"training": True})
     spike_factor: float = dataclasses.field(default=4.0, metadata={"training": True})
     spike_window: int = dataclasses.field(default=9, metadata={"training": True})
+    # Training on accumulated inputs (ours, issue 34; docs/methods/rae.md "Input accumulation"): with
+    # `train_accumulate` p > 0 and `accumulate_samples` on, each training sequence crop of fewer spp than
+    # `accumulate_samples` is, with probability p, given the colour `step` would accumulate (the same filter and
+    # settings, reprojected within the crop: `crop_projection`) and the rate channel its samples; such a crop
+    # is not played backwards (accumulation runs forward in time). 0: the colour as rendered.
+    train_accumulate: float = dataclasses.field(default=0.0, metadata={"training": True})
     train_frames: int = 7
     train_crop: int = 64
     train_batch: int = 4
@@ -257,6 +263,9 @@ def _check(config: Config) -> None:
             or not isinstance(w, (int, np.integer)) or w < 1 or w % 2 == 0:
         raise JaxdenoiseError(f"rae: config.spike_weight must be >= 0, config.spike_factor > 0 and config.spike_window "
                               f"an odd int >= 1, got {config.spike_weight!r}, {config.spike_factor!r} and {w!r}")
+    if not 0 <= config.train_accumulate <= 1 or (config.train_accumulate and not config.accumulate_samples):
+        raise JaxdenoiseError(f"rae: config.train_accumulate must be in [0, 1] and needs config.accumulate_samples "
+                              f"> 0, got {config.train_accumulate!r} with {config.accumulate_samples!r}")
     if not config.level_weight >= 0 or int(config.level_pool) < 1 or not config.level_eps > 0:
         raise JaxdenoiseError(f"rae: config.level_weight must be >= 0, config.level_pool >= 1 and config.level_eps "
                               f"> 0, got {config.level_weight!r}, {config.level_pool!r} and {config.level_eps!r}")
@@ -692,13 +701,95 @@ def _derive(seq: dict, config: Config) -> dict:
     """Add the view-space inputs of a batch of crops (before augmentation: a quarter turn of the
     image then turns the view-space normal with it, `jaxdenoise.pipeline.augment`) and drop what they
     came from; the per-frame statistics of the whole renders stay."""
-    out = {k: np.asarray(seq[k]) for k in ("color", "albedo", "reference", "spp")}
+    out = {k: np.asarray(seq[k]) for k in ("color", "albedo", "reference", "spp", SAMPLE_COUNT_FIELD) if k in seq}
     out.update({k: np.asarray(v) for k, v in carried_stats(seq).items()})
     if "roughness" in config.aux:
         out["roughness"] = np.asarray(seq["roughness"])
     cam = {k: seq[k] for k in ("normal", "position", "world_to_camera") if k in seq}
     out.update({k: np.asarray(v) for k, v in _view_inputs(cam, config).items()})
     return out
+
+
+def crop_projection(position: np.ndarray, normal: np.ndarray, world_to_ndc: np.ndarray, *,
+                    min_pixels: int = 16) -> np.ndarray | None:
+    """The ``(4, 4)`` matrix ``A`` such that ``A @ world_to_ndc`` projects world points to the NDC of a
+    square crop of a frame (`jaxdenoise.filters.reproject`'s convention for an image of the crop's size),
+    for a crop whose window in the frame is not recorded: fitted (least squares) from where the crop's
+    own surface pixels' world ``position`` ``(c, c, 3)`` project through the frame's ``world_to_ndc``,
+    NDC x against the column and NDC y against the row (each a line: the projection of a pixel's sample
+    lies inside that pixel), then again over the pixels within half a pixel of the first fit. The same
+    ``A`` holds for every frame of a sequence crop (one window in screen space). None with fewer than
+    ``min_pixels`` surface pixels in front of the camera or fewer than 90 % of them within half a pixel
+    of the fit (a crop whose positions do not project into it)."""
+    c = position.shape[0]
+    q = position @ world_to_ndc[:3, :3].T + world_to_ndc[:3, 3]
+    w = position @ world_to_ndc[3, :3] + world_to_ndc[3, 3]
+    ok = np.any(normal != 0, axis=-1) & (w > 1e-6)
+    ndc = q[..., :2] / np.where(ok, w, 1.0)[..., None]
+    ok &= np.all(np.isfinite(ndc) & (np.abs(ndc) < 4.0), axis=-1)
+    if ok.sum() < min_pixels:
+        return None
+    rows, cols = (v + 0.5 for v in np.nonzero(ok))
+    nx, ny = ndc[..., 0][ok], ndc[..., 1][ok]
+    ax, bx = np.polyfit(cols, nx, 1)
+    ay, by = np.polyfit(rows, ny, 1)
+    if not (ax > 0 and ay < 0):
+        return None
+    inl = (np.abs(ax * cols + bx - nx) <= 0.5 * ax) & (np.abs(ay * rows + by - ny) <= -0.5 * ay)
+    if inl.sum() < max(min_pixels, 0.9 * ok.sum()):
+        return None
+    ax, bx = np.polyfit(cols[inl], nx[inl], 1)
+    ay, by = np.polyfit(rows[inl], ny[inl], 1)
+    a = np.eye(4, dtype=np.float64)  # crop NDC x = 2 (x - bx) / (ax c) - 1, y = 1 - 2 (y - by) / (ay c)
+    a[0, 0], a[0, 3] = 2.0 / (ax * c), -2.0 * bx / (ax * c) - 1.0
+    a[1, 1], a[1, 3] = -2.0 / (ay * c), 1.0 + 2.0 * by / (ay * c)
+    return a
+
+
+@functools.partial(jax.jit, static_argnums=(5,))
+def _accumulate_crop(color_: jax.Array, position: jax.Array, normal: jax.Array, world_to_ndc: jax.Array,
+                     cap: jax.Array, config: Config) -> tuple[jax.Array, jax.Array]:
+    """What `step` accumulates over one sequence crop ``(T, c, c, .)`` (``world_to_ndc`` already in the
+    crop's NDC, ``cap`` the frames to keep per frame ``(T,)``): ``(colour (T, c, c, 3), length (T, c, c, 1))``."""
+    state, out, lengths = taa_init(color_.shape[1:]), [], []
+    for t in range(color_.shape[0]):
+        state, mean, length = accumulate_step(state, color_[t], position[t], normal[t], world_to_ndc[t],
+                                              frames=cap[t], tolerance=config.accumulate_tolerance,
+                                              clamp=config.accumulate_clamp)
+        out.append(mean)
+        lengths.append(length)
+    return jnp.stack(out), jnp.stack(lengths)
+
+
+def _accumulated(seq: dict, config: Config, rng: np.random.Generator) -> tuple[dict, list[bool]]:
+    """``seq`` (un-augmented sequence crops) with ``train_accumulate``'s share of its crops of fewer spp than
+    ``accumulate_samples`` given `step`'s accumulated colour (outliers cut first, as `step` does), and a
+    per-pixel ``spp_map`` on every crop (the samples averaged); and which crops were accumulated."""
+    out = dict(seq)
+    colour = np.array(seq["color"], np.float32)
+    spp = np.asarray(seq["spp"], np.float32)  # (B, T)
+    spp_map = np.broadcast_to(spp[..., None, None, None], colour.shape[:-1] + (1,)).copy()
+    done = []
+    for i in range(colour.shape[0]):
+        draw = rng.random()
+        a = None
+        if draw < config.train_accumulate and spp[i, 0] < config.accumulate_samples:
+            a = crop_projection(np.asarray(seq["position"][i, 0]), np.asarray(seq["normal"][i, 0]),
+                                np.asarray(seq["world_to_ndc"][i, 0], np.float64))
+        if a is None:
+            done.append(False)
+            continue
+        frame = {"color": colour[i], **{k: v[i] for k, v in carried_stats(seq).items()}}
+        scale = np.asarray(_scale(frame, config))
+        cut = colour[i] if not config.outlier_clamp else \
+            np.asarray(clamp_outliers(colour[i] * scale, config.outlier_clamp, color.EXPOSURE_LEVEL)) / scale
+        cams = np.einsum("ij,tjk->tik", a, np.asarray(seq["world_to_ndc"][i], np.float64)).astype(np.float32)
+        mean, length = _accumulate_crop(cut, seq["position"][i], seq["normal"][i], cams,
+                                        config.accumulate_samples / np.maximum(spp[i], 1.0), config)
+        colour[i], spp_map[i] = np.asarray(mean), spp[i][:, None, None, None] * np.asarray(length)
+        done.append(True)
+    out["color"], out[SAMPLE_COUNT_FIELD] = colour, spp_map
+    return out, done
 
 
 def batch(dataset, step: int, config: Config, rng: np.random.Generator) -> dict:
@@ -710,8 +801,11 @@ def batch(dataset, step: int, config: Config, rng: np.random.Generator) -> dict:
     seq = dataset.sequences(config.train_batch, config.train_crop, rng, frames=config.train_frames,
                             stop_probability=config.stop_probability, augment=False)
     with jax.default_device(jax.local_devices(backend="cpu")[0]):
+        done = [False] * config.train_batch
+        if config.train_accumulate:
+            seq, done = _accumulated(seq, config, rng)
         derived = _derive(seq, config)
-        items = [augment({k: v[i] for k, v in derived.items()}, rng, reverse=True)
+        items = [augment({k: v[i] for k, v in derived.items()}, rng, reverse=not done[i])
                  for i in range(config.train_batch)]
         stacked = {k: np.stack([it[k] for it in items]) for k in items[0]}
         scale = _scale(stacked, config)
