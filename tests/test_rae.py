@@ -500,16 +500,17 @@ def test_accumulate_setting():
         rae.num_params(dataclasses.replace(on, accumulate_samples=-1.0))
 
 
-def _plane_video(t: int, h: int, w: int, *, shift: float, seed: int = 0) -> dict:
+def _plane_video(t: int, h: int, w: int, *, shift: float, seed: int = 0, spread: tuple = (0.05, 0.95)) -> dict:
     """A ``t``-frame video ``(t, h, w, .)`` of the plane z = 5 seen by a pinhole camera (NDC = f (x, y) / z,
-    w = z) that moves ``shift`` pixels to the right per frame, one jittered sample per pixel: colour,
+    w = z) that moves ``shift`` pixels to the right per frame, one sample per pixel offset by ``spread``
+    pixels from its corner (a pixel filter wider than the pixel reaches beyond it): colour,
     albedo, positions, normals, roughness and every frame's ``world_to_ndc``."""
     r = np.random.default_rng(seed)
     f, z = 1.5, 5.0
     out = {k: [] for k in ("color", "albedo", "position", "normal", "world_to_ndc")}
     for k in range(t):
         rows, cols = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
-        jx, jy = r.uniform(0.05, 0.95, (2, h, w))
+        jx, jy = r.uniform(*spread, (2, h, w))
         ndc_x, ndc_y = (cols + jx) * 2 / w - 1, 1 - (rows + jy) * 2 / h
         cx = k * shift * 2 / w * z / f  # the camera's x in the world
         pos = np.stack([ndc_x * z / f + cx, ndc_y * z / f, np.full((h, w), z)], -1).astype(np.float32)
@@ -541,6 +542,13 @@ def test_crop_projection_recovers_the_crops_window():
         rows, cols = np.meshgrid(np.arange(c), np.arange(c), indexing="ij")
         assert np.all(np.abs(col - cols) < 0.5) and np.all(np.abs(row - rows) < 0.5)
     assert rae.crop_projection(crop["position"][0], np.zeros_like(crop["normal"][0]), v["world_to_ndc"][0]) is None
+    wide = _plane_video(1, 72, 96, shift=0.0, spread=(-1.5, 2.5))  # samples up to 2 px outside their pixel
+    c = 48
+    a = rae.crop_projection(wide["position"][0, y0:y0 + c, x0:x0 + c], wide["normal"][0, y0:y0 + c, x0:x0 + c],
+                            wide["world_to_ndc"][0].astype(np.float64))
+    exact = np.eye(4)  # the frame's NDC to the crop's: x' = (W x + W - 2 x0) / c - 1, y' = (H y - H + 2 y0) / c + 1
+    exact[0, 0], exact[0, 3], exact[1, 1], exact[1, 3] = 96 / c, (96 - 2 * x0) / c - 1, 72 / c, 1 - 72 / c + 2 * y0 / c
+    np.testing.assert_allclose(a, exact, atol=0.01)
 
 
 class _Videos:

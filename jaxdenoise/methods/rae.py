@@ -711,16 +711,17 @@ def _derive(seq: dict, config: Config) -> dict:
 
 
 def crop_projection(position: np.ndarray, normal: np.ndarray, world_to_ndc: np.ndarray, *,
-                    min_pixels: int = 16) -> np.ndarray | None:
+                    min_pixels: int = 16, reach: float = 3.0) -> np.ndarray | None:
     """The ``(4, 4)`` matrix ``A`` such that ``A @ world_to_ndc`` projects world points to the NDC of a
     square crop of a frame (`jaxdenoise.filters.reproject`'s convention for an image of the crop's size),
     for a crop whose window in the frame is not recorded: fitted (least squares) from where the crop's
     own surface pixels' world ``position`` ``(c, c, 3)`` project through the frame's ``world_to_ndc``,
     NDC x against the column and NDC y against the row (each a line: the projection of a pixel's sample
-    lies inside that pixel), then again over the pixels within half a pixel of the first fit. The same
-    ``A`` holds for every frame of a sequence crop (one window in screen space). None with fewer than
-    ``min_pixels`` surface pixels in front of the camera or fewer than 90 % of them within half a pixel
-    of the fit (a crop whose positions do not project into it)."""
+    lies in or near that pixel), then again over the pixels within ``reach`` pixels of the first fit (a
+    pixel filter wider than the pixel draws samples from up to 2-3 pixels away; the library's renders do).
+    The same ``A`` holds for every frame of a sequence crop (one window in screen space). None with fewer
+    than ``min_pixels`` surface pixels in front of the camera or fewer than 90 % of them within ``reach``
+    pixels of the fit (a crop whose positions do not project into it: a mirror's or glass's first hits)."""
     c = position.shape[0]
     q = position @ world_to_ndc[:3, :3].T + world_to_ndc[:3, 3]
     w = position @ world_to_ndc[3, :3] + world_to_ndc[3, 3]
@@ -735,7 +736,7 @@ def crop_projection(position: np.ndarray, normal: np.ndarray, world_to_ndc: np.n
     ay, by = np.polyfit(rows, ny, 1)
     if not (ax > 0 and ay < 0):
         return None
-    inl = (np.abs(ax * cols + bx - nx) <= 0.5 * ax) & (np.abs(ay * rows + by - ny) <= -0.5 * ay)
+    inl = (np.abs(ax * cols + bx - nx) <= reach * ax) & (np.abs(ay * rows + by - ny) <= -reach * ay)
     if inl.sum() < max(min_pixels, 0.9 * ok.sum()):
         return None
     ax, bx = np.polyfit(cols[inl], nx[inl], 1)
