@@ -67,7 +67,7 @@ from ..pipeline import carried_stat, carried_stats
 
 __all__ = ["Config", "needs", "required", "init", "apply", "init_state", "step", "loss", "run_sequence", "inputs",
            "make_dataset", "batch", "frame_stats", "normalized_depth", "surface_mean", "exposure_scale",
-           "rate_channel", "crop_projection", "INPUT_TRANSFORMS", "EXPOSURES", "RECIPES", "RATE_SCALE",
+           "rate_channel", "sample_count", "crop_projection", "INPUT_TRANSFORMS", "EXPOSURES", "RECIPES", "RATE_SCALE",
            "loss_terms", "log_kernel", "num_params", "TRAIN", "WEIGHTS", "AUX"]
 # Pixels of context a tile needs on each side (`jaxdenoise.tiling`), measured on a real frame
 # (docs/results/tiling/, re-measured with the 0.9.0 weights): max |tiled - whole| / (|whole| + 0.01)
@@ -419,19 +419,29 @@ def exposure_scale(frame: Any, config: Config) -> jax.Array:
     return color.exposure_scale(_get(frame, "color"), carried_stat(frame, "color_mean"))
 
 
-def rate_channel(frame: Any, shape: tuple[int, ...]) -> jax.Array:
-    """The rate input ``log2(spp) / RATE_SCALE`` broadcast to ``shape`` (``(..., H, W, 1)``): per
-    pixel from the frame's sample-count map (``spp_map``, adaptive sampling) when it has one, else
-    from its ``spp`` (a scalar, or one per frame of a batch)."""
+def sample_count(frame: Any, owner: str = "config.rate_input") -> jax.Array:
+    """The frame's samples per pixel: its sample-count map (``spp_map``, adaptive sampling) ``(..., H, W,
+    1)`` when it has one, else its ``spp`` (a scalar, or one per frame of a batch) as ``(..., 1, 1, 1)``;
+    a frame with neither is refused, naming ``owner`` (what needs it)."""
     fields = frame.to_dict() if isinstance(frame, Buffers) else frame
-    per_pixel = fields.get(SAMPLE_COUNT_FIELD) is not None
-    spp = fields[SAMPLE_COUNT_FIELD] if per_pixel else fields.get("spp")
-    if spp is None:
-        raise JaxdenoiseError("rae: config.rate_input needs the frame's sample count ('spp'); it is never guessed")
-    spp = jnp.asarray(spp, jnp.float32)
-    if not per_pixel:
-        spp = spp.reshape(spp.shape + (1,) * 3)
-    return jnp.broadcast_to(jnp.log2(jnp.maximum(spp, 1.0)) / RATE_SCALE, shape)
+    if fields.get(SAMPLE_COUNT_FIELD) is not None:
+        return jnp.asarray(fields[SAMPLE_COUNT_FIELD], jnp.float32)
+    if fields.get("spp") is None:
+        raise JaxdenoiseError(f"rae: {owner} needs the frame's sample count ('spp'); it is never guessed")
+    spp = jnp.asarray(fields["spp"], jnp.float32)
+    return spp.reshape(spp.shape + (1,) * 3)
+
+
+def rate_channel(frame: Any, shape: tuple[int, ...]) -> jax.Array:
+    """The rate input ``log2(spp) / RATE_SCALE`` broadcast to ``shape`` (``(..., H, W, 1)``), from
+    `sample_count` (per pixel where the frame has a sample-count map)."""
+    return jnp.broadcast_to(jnp.log2(jnp.maximum(sample_count(frame), 1.0)) / RATE_SCALE, shape)
+
+
+def _cut_outliers(c: Any, config: Config) -> Any:
+    """The exposure-scaled colour ``c`` with ``config.outlier_clamp``'s isolated spikes cut
+    (`jaxdenoise.filters.clamp_outliers`, floor the exposure level); ``c`` when off."""
+    return clamp_outliers(c, config.outlier_clamp, color.EXPOSURE_LEVEL) if config.outlier_clamp else c
 
 
 def inputs(frame: Any, config: Config, scale: Any = None) -> jax.Array:
@@ -442,9 +452,7 @@ def inputs(frame: Any, config: Config, scale: Any = None) -> jax.Array:
     `exposure_scale` when the caller has it already (it divides the output by the same factor)."""
     get = lambda f: _get(frame, f)
     scale = exposure_scale(frame, config) if scale is None else scale
-    c = color.radiance(get("color")) * scale
-    if config.outlier_clamp:
-        c = clamp_outliers(c, config.outlier_clamp, color.EXPOSURE_LEVEL)
+    c = _cut_outliers(color.radiance(get("color")) * scale, config)
     demod = color.demodulate(c, _albedo(get("albedo")), config.albedo_eps)
     parts = [color.gamma(demod, 1.0 / config.power) if config.input_transform == "power" else demod]
     has = (lambda f: f in frame) if isinstance(frame, dict) else (lambda f: False)
@@ -524,17 +532,11 @@ def step(params: dict, state: tuple, buffers: Buffers, config: Config) -> tuple[
     projection = _get(buffers, "world_to_ndc", optional=True)
     target, frame = c, buffers
     if config.accumulate_samples and projection is not None:  # without its projection: the history kept
-        cut = c if not config.outlier_clamp else \
-            clamp_outliers(c * scale, config.outlier_clamp, color.EXPOSURE_LEVEL) / scale
         fields = buffers.to_dict() if isinstance(buffers, Buffers) else dict(buffers)
-        spp = fields.get(SAMPLE_COUNT_FIELD)
-        if spp is None and fields.get("spp") is None:
-            raise JaxdenoiseError("rae: config.accumulate_samples needs the frame's sample count ('spp'); it is "
-                                  "never guessed")
-        spp = jnp.asarray(fields["spp"] if spp is None else spp, jnp.float32)
-        spp = spp if spp.ndim >= 3 else spp.reshape(spp.shape + (1,) * 3)
-        acc, target, length = accumulate_step(acc, cut, _get(buffers, "position"), _get(buffers, "normal"),
-                                              projection, frames=config.accumulate_samples / jnp.maximum(spp, 1.0),
+        spp = sample_count(fields, "config.accumulate_samples")
+        cut = _cut_outliers(c * scale, config) / scale
+        acc, target, length = accumulate_step(acc, cut, _get(buffers, "position"), _get(buffers, "normal"), projection,
+                                              frames=config.accumulate_samples / jnp.maximum(spp, 1.0),
                                               tolerance=config.accumulate_tolerance, clamp=config.accumulate_clamp)
         frame = fields | {"color": target, SAMPLE_COUNT_FIELD: spp * length}
     x, size = nn.pad_to_multiple(inputs(frame, config, scale), 32)
@@ -772,9 +774,8 @@ def _accumulated(seq: dict, config: Config, rng: np.random.Generator) -> tuple[d
     spp_map = np.broadcast_to(spp[..., None, None, None], colour.shape[:-1] + (1,)).copy()
     done = []
     for i in range(colour.shape[0]):
-        draw = rng.random()
         a = None
-        if draw < config.train_accumulate and spp[i, 0] < config.accumulate_samples:
+        if rng.random() < config.train_accumulate and spp[i, 0] < config.accumulate_samples:
             a = crop_projection(np.asarray(seq["position"][i, 0]), np.asarray(seq["normal"][i, 0]),
                                 np.asarray(seq["world_to_ndc"][i, 0], np.float64))
         if a is None:
@@ -782,8 +783,7 @@ def _accumulated(seq: dict, config: Config, rng: np.random.Generator) -> tuple[d
             continue
         frame = {"color": colour[i], **{k: v[i] for k, v in carried_stats(seq).items()}}
         scale = np.asarray(_scale(frame, config))
-        cut = colour[i] if not config.outlier_clamp else \
-            np.asarray(clamp_outliers(colour[i] * scale, config.outlier_clamp, color.EXPOSURE_LEVEL)) / scale
+        cut = np.asarray(_cut_outliers(colour[i] * scale, config)) / scale
         cams = np.einsum("ij,tjk->tik", a, np.asarray(seq["world_to_ndc"][i], np.float64)).astype(np.float32)
         mean, length = _accumulate_crop(cut, seq["position"][i], seq["normal"][i], cams,
                                         config.accumulate_samples / np.maximum(spp[i], 1.0), config)
