@@ -27,7 +27,7 @@ N = 4096  # 64 MiB per float32 buffer: above glibc's largest mmap threshold (32 
 f = jax.jit(lambda x: (x * 3.0 + x[::-1]) @ x[:, :16])
 x = jnp.asarray(np.random.default_rng(0).random((N, N), dtype=np.float32))
 outs, faults = [], []
-for _ in range(30):  # each output is freed before the next call, as in a denoising loop
+for _ in range(100):  # each output is freed before the next call, as in a denoising loop
     r0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
     y = f(x).block_until_ready()
     faults.append(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - r0)
@@ -61,8 +61,9 @@ def test_keep_memory_reuses_buffers_bit_identically_and_release_gives_them_back(
     assert default["status"]["kept"] is None
     assert kept["same"] and default["same"] and kept["out"] == default["out"]  # the allocator never changes a value
     # repeated calls reuse their buffers: the default allocator faults a large buffer's pages in on every
-    # call; the kept heap only while it grows to the program's needs (a few calls extend it by one buffer
-    # as threads free in varying order; it levels off within about 50 calls)
+    # call; the kept heap only when it grows, by one buffer now and then as threads free in varying order
+    # (measured: 1-8 buffers over 100 calls in 12 runs, up to 9 within the first 30 calls, some growth as
+    # late as call 74), so the window is 100 calls: the heap's growth is bounded, the default's is not
     assert min(default["faults"]) > 0.2 * kept["pages"], default["faults"]
     assert sum(kept["faults"]) < 0.3 * sum(default["faults"]), (kept["faults"], default["faults"])
     # the kept 64 MiB (and the program's buffers) go back to the system on release
