@@ -13,7 +13,7 @@ its output scale with its input's exposure?
    whose rays all hit an area emitter (eroded by one pixel) over the reference's, on frames that show
    one (the check: within 5 %). ``--masks none`` measures every lit pixel (the pages before 0.9.2).
 2. **Halo**: pixels whose output (channel mean) is above 4x the reference's largest value in the
-   9 x 9 square around them, summed over the frames of a rate: every pixel, and (with masks) the
+   9 x 9 square around them (`jaxdenoise.metrics.halo_pixels`), summed over the frames of a rate: every pixel, and (with masks) the
    surface pixels alone, which issue 34's check counts.
 3. **Exposure**: on the first frame of each folder at 4 spp, ``f(k x)`` against ``k f(x)`` for
    ``k`` in 1/16, 1/4, 4, 16: the largest ``|f(k x) - k f(x)|`` over the largest ``|k f(x)|``.
@@ -42,7 +42,6 @@ from common import all_measured, box_mean, num, write_study  # noqa: E402
 BOX = 15
 FLOOR = 1e-3
 FACTORS = (1 / 16, 1 / 4, 4.0, 16.0)
-HALO, HALO_WINDOW = 4.0, 9
 
 
 def frame_levels(out: np.ndarray, ref: np.ndarray, surface: np.ndarray | None = None) -> list[float]:
@@ -108,17 +107,6 @@ def emitter_level(out: np.ndarray, ref: np.ndarray, emitter: np.ndarray) -> list
     return [float(o[:, c].sum() / max(r[:, c].sum(), 1e-12)) for c in range(3)]
 
 
-def halo_pixels(out: np.ndarray, ref: np.ndarray, surface: np.ndarray | None = None) -> int:
-    """Pixels (of ``surface``, an (H, W) bool mask, where given) whose output (mean of the channels) is
-    above `HALO` times the reference's largest value in the `HALO_WINDOW` square around them: light
-    drawn where the reference has none near (issue 34's ring around a copper sphere)."""
-    from scipy.ndimage import maximum_filter
-
-    o, r = np.asarray(out, np.float64).mean(-1), np.asarray(ref, np.float64)[..., :3].mean(-1)
-    halo = o > HALO * maximum_filter(r, size=HALO_WINDOW, mode="nearest") + 1e-6
-    return int(np.sum(halo if surface is None else halo & surface))
-
-
 def _trained_for(folder: str) -> str:
     """The method a weights folder was trained for (its config.json's ``method``; demc for older ones)."""
     return json.loads((Path(folder) / "config.json").read_text()).get("method", "demc")
@@ -160,9 +148,10 @@ def measure(methods: list[str], folders: list[str], spps: list[int], masks: str 
                     per_rate.setdefault(str(spp), []).append(frame_levels(y, ref, mk and mk["surface"]))
                     if mk is not None:
                         emitters.setdefault(str(spp), []).append(emitter_level(y, ref, mk["emitter"]))
-                    halos.setdefault(str(spp), []).append(halo_pixels(y, ref))
+                    halos.setdefault(str(spp), []).append(metrics.halo_pixels(y, ref[..., :3]))
                     if mk is not None:
-                        surface_halos.setdefault(str(spp), []).append(halo_pixels(y, ref, mk["surface"]))
+                        surface_halos.setdefault(str(spp), []).append(
+                            metrics.halo_pixels(y, ref[..., :3], mk["surface"]))
                     scores.setdefault(str(spp), []).append([float(metrics.relmse(y, ref[..., :3])),
                                                             float(metrics.ssim(y, ref[..., :3]))])
                     if spp == 4 and folder not in rec["exposure"]:

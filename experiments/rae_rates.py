@@ -105,7 +105,7 @@ for _p in (ROOT, ROOT / "experiments"):
 from jaxdenoise import checkpoint  # noqa: E402
 from jaxdenoise.fsutil import write_json  # noqa: E402
 from jaxdenoise.methods import get  # noqa: E402
-from jaxdenoise.train import TrainConfig, load_data, train  # noqa: E402
+from jaxdenoise.train import SELECT, TrainConfig, load_data, train  # noqa: E402
 
 SPPS = (1, 4, 16)
 ARMS = {"power": {"input_transform": "power", "rate_input": False},
@@ -133,15 +133,17 @@ def _train_arm(arm: str, data, out: Path, args, steps: int, name: str | None = N
     init = start_weights(Path(args.init), method, out / "start")
     fields = {"schedule": "constant", "seed": args.seed} if config else {}
     run = TrainConfig.for_method(method, steps=steps, resume=True, val_data=args.val_data, init_from=str(init),
-                                 validate_every=args.validate_every, select="geomean", progress=False,
-                                 learning_rate=args.lr, **fields)
+                                 validate_every=args.validate_every, select=args.select, progress=False,
+                                 learning_rate=args.lr, time_limit=args.seconds, **fields)
     t = time.perf_counter()
     s = train(method, data, out / (name or arm), run)
     rec = {"steps": s["steps_done"], "steps_this_run": s["steps_this_run"], "seconds": time.perf_counter() - t,
            "final_loss": s["final_loss"], "best_step": s["best"]["step"],
            "best_geomean": s["best"]["relmse_geomean"], "best_per_spp": s["best"].get("per_spp"),
+           "best_halo": s["best"].get("halo"), "select": args.select,
            "config": ARMS[arm] | {"exposure": "frame", "train_spps": list(SPPS)} | config | fields,
-           "validation": [{k: v.get(k) for k in ("step", "relmse", "relmse_geomean", "per_spp", "ssim")}
+           "validation": [{k: v.get(k) for k in ("step", "relmse", "relmse_geomean", "per_spp", "ssim", "halo",
+                                                 "halo_per_spp")}
                           for v in s["validation"]]}
     print(name or arm, {k: rec[k] for k in ("steps", "seconds", "best_step", "best_geomean")}, flush=True)
     return rec
@@ -353,6 +355,12 @@ def main() -> None:
     ap.add_argument("--arm", default=None, help="continue: the arm to train further")
     ap.add_argument("--steps", type=int, default=400)
     ap.add_argument("--validate-every", type=int, default=100)
+    ap.add_argument("--select", default="geomean", choices=sorted(SELECT),
+                    help="what picks a run's best/ (jaxdenoise.train.SELECT; geomean_halo: the geometric mean "
+                         "among the validations with no more halo pixels than the start's)")
+    ap.add_argument("--seconds", type=float, default=None,
+                    help="stop a training run after this many seconds of steps (checkpointed: run again to "
+                         "resume; a device lease's limit)")
     ap.add_argument("--lr", type=float, default=3e-4, help="Adam's base rate (ramp-up then 1/sqrt(t), the "
                     "module's schedule; 3e-4: the earlier CPU fine-tunes')")
     ap.add_argument("--init", default="jaxdenoise/weights/rae-paper")

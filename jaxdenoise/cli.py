@@ -307,11 +307,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="gradnet: what I_b of the training renders must be, the header's primal (the config's "
                         "train_primal; default gpt, the paper's G-PT primal; base for renders without --primal gpt)")
     s.add_argument("--validate-every", type=int, help="steps between validations (default: only at the end)")
-    s.add_argument("--select", choices=["mean", "geomean", "loss"],
+    s.add_argument("--select", choices=["mean", "geomean", "geomean_halo", "loss"],
                    help="what picks OUT/best among the validations: the mean RelMSE over the validation frames, "
                         "or its geometric mean, which counts every frame by its ratio (for validation frames at "
-                        "several rates, where the mean follows the noisiest), or the method's unsupervised "
-                        "validation loss, which reads no reference (gradnet; default: mean)")
+                        "several rates, where the mean follows the noisiest), or that geometric mean among the "
+                        "validations with no more halo pixels (output above 4x the reference's 9x9 maximum) than "
+                        "the run's first, or the method's unsupervised validation loss, which reads no reference "
+                        "(gradnet; default: mean)")
     s.add_argument("--ema", type=float, help="validate and save an exponential moving average of the params "
                                              "with this decay, e.g. 0.999 (default: the method's, else off)")
     s.add_argument("--quiet", action="store_true", help="no progress bar (default: a progress bar on stderr)")

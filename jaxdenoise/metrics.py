@@ -16,6 +16,9 @@ promoted: squared HDR errors overflow float16).
   data_range=1, channel_axis=-1)`` does.
 - `temporal_error`: RelMSE-style error of the temporal differences of a sequence against those of
   its references (Chaitanya et al. 2017, Sec. 4.4, temporal loss L_t, as a squared relative error).
+- `halo_pixels`: how many pixels draw light the reference has nowhere near: the result (mean of the
+  channels) above `HALO_FACTOR` (4) times the reference's largest value in the `HALO_WINDOW` (9x9)
+  square around the pixel (issue 34's check; a count, per image, not a mean).
 
 The plain functions return one scalar: the mean over every image of the batch (for `relmse` and
 `mse` that equals the pooled mean; for `psnr` and `ssim` it is the mean of the per-image values).
@@ -235,7 +238,41 @@ def temporal_error(frames: Any, refs: Any, eps: float = RELMSE_EPS) -> jnp.ndarr
     return jnp.mean(_temporal_map(frames, refs, eps))
 
 
+# -- halos -----------------------------------------------------------------------------------------
+HALO_FACTOR, HALO_WINDOW = 4.0, 9  # issue 34: "no surface pixel above 4x the reference's 9x9 local maximum"
+
+
+@jax.jit
+def _halo_map(x, ref):
+    """Per image ``(..., H, W)``: the channel mean of ``x`` above `HALO_FACTOR` x the 9x9 maximum of
+    the reference's channel mean (the square clipped at the border: scipy's ``maximum_filter`` with
+    ``mode="nearest"``), with 1e-6 of slack for black references."""
+    o, r = jnp.mean(x, -1), jnp.mean(ref, -1)
+    h = HALO_WINDOW // 2
+    ones = (1,) * (r.ndim - 2)
+    local = jax.lax.reduce_window(r, -jnp.inf, jax.lax.max, ones + (HALO_WINDOW, HALO_WINDOW), ones + (1, 1),
+                                  [(0, 0)] * (r.ndim - 2) + [(h, h), (h, h)])
+    return o > HALO_FACTOR * local + 1e-6
+
+
+def halo_pixels(x: Any, ref: Any, mask: Any = None) -> int:
+    """How many pixels of ``x`` (of ``mask``, a boolean ``(..., H, W)`` array, where given: issue 34
+    counts surface pixels) are brighter (channel mean) than `HALO_FACTOR` times the reference's
+    largest channel mean in the `HALO_WINDOW` square around them: light drawn where the reference has
+    none near (a ring around a bright object, a surviving firefly). Over every image of a batch."""
+    x, ref = _pair("halo_pixels", x, ref)
+    halo = _halo_map(jnp.nan_to_num(x, nan=jnp.inf), ref)  # a non-finite output counts as a halo
+    if mask is not None:
+        mask = jnp.asarray(mask, bool)
+        if mask.shape != halo.shape[-mask.ndim:] and mask.shape != halo.shape:
+            raise JaxdenoiseError(f"halo_pixels: 'mask' has shape {tuple(mask.shape)}; expected the images' "
+                                  f"(..., H, W) = {tuple(halo.shape)}")
+        halo = halo & mask
+    return int(jnp.sum(halo))
+
+
 __all__ = [
     "RELMSE_EPS", "relmse", "relmse_per_image", "mse", "mse_per_image", "psnr", "psnr_per_image",
     "ssim", "ssim_map", "ssim_per_image", "temporal_error", "temporal_error_per_frame",
+    "HALO_FACTOR", "HALO_WINDOW", "halo_pixels",
 ]

@@ -52,7 +52,9 @@ instance; ``val_spps`` limits the rates) through the method's full inference pat
 so post-processing such as LBF's spike removal is included), and the score is the mean RelMSE
 (`metrics.relmse`) over those frames, or with ``select="geomean"`` their geometric mean (`SELECT`:
 validation frames at several rates, where the mean follows the noisiest rate; both are recorded
-either way). A method whose module defines ``validation_loss(params, buffers, config)`` (an
+either way), or with ``select="geomean_halo"`` the geometric mean among the validations with no more
+halo pixels (`metrics.halo_pixels`, recorded in every validation) than the run's first (`selectable`:
+a fine-tune never ships more light drawn where the reference has none than it started with). A method whose module defines ``validation_loss(params, buffers, config)`` (an
 unsupervised loss of one whole frame that reads no reference: GradNet's) also gets its mean over
 the frames recorded as ``loss``, and ``select="loss"`` picks ``best/`` by it: what a user without
 references can do (the reference-based scores are still recorded beside it, never used to choose). Mini-batch losses are too noisy to pick weights by, and a run
@@ -111,7 +113,7 @@ from .errors import JaxdenoiseError
 __all__ = ["TrainConfig", "TrainError", "TrainingData", "State", "Group", "Stepper", "train", "load_data",
            "initial_state", "param_groups", "optimizer_state", "step_fn", "make_stepper", "validation_round", "save_checkpoint",
            "save_weights", "selection_curve", "restore_like", "make_optimizer", "model_fields", "summary_line", "load_validation",
-           "unsupervised_loss", "validate", "shard_batch", "batch_workers"]
+           "unsupervised_loss", "validate", "shard_batch", "batch_workers", "selectable", "SELECT"]
 
 CHECKPOINT_DIR = "checkpoint"
 WEIGHTS_DIR = "weights"
@@ -142,7 +144,17 @@ class TrainError(JaxdenoiseError, RuntimeError):
 SELECT = {"mean": ("relmse", "mean RelMSE over the validation frames (metrics.relmse)"),
           "geomean": ("relmse_geomean", "geometric mean of RelMSE over the validation frames (metrics.relmse)"),
           "loss": ("loss", "mean unsupervised validation loss over the validation frames (the method's "
-                           "validation_loss; no reference read)")}
+                           "validation_loss; no reference read)"),
+          "geomean_halo": ("relmse_geomean", "geometric mean of RelMSE over the validation frames, among the "
+                                             "validations with no more halo pixels (metrics.halo_pixels) than "
+                                             "the run's first")}
+
+
+def selectable(select: str, first: dict, record: dict) -> bool:
+    """Whether the validation ``record`` may become ``best/`` (`SELECT`): with ``select="geomean_halo"``
+    only when it has no more halo pixels than ``first``, the run's first validation (the starting weights'
+    when fine-tuning; a record without the count, from an older run, does not constrain)."""
+    return select != "geomean_halo" or record.get("halo", 0) <= first.get("halo", math.inf)
 
 # The TrainConfig fields that change the compiled step (its cache key, with the method).
 OPTIMIZER_FIELDS = ("optimizer", "learning_rate", "adam_b1", "adam_b2", "schedule", "schedule_every",
@@ -667,7 +679,9 @@ def _validation_from_export(method: Any, path: Path, wanted: set | None) -> list
 
 def validate(method: Any, params: Any, frames: list[dict]) -> dict:
     """Mean RelMSE of ``method`` with ``params`` over ``frames`` (`load_validation`), overall and
-    per sampling rate, their geometric mean (``relmse_geomean``), and mean SSIM beside it (None when every frame is under SSIM's window); a
+    per sampling rate, their geometric mean (``relmse_geomean``), mean SSIM beside it (None when every frame is
+    under SSIM's window) and the halo pixels (`metrics.halo_pixels`, every pixel counted) summed over the
+    frames, overall (``halo``) and per rate; a
     sequence entry runs through the sequence driver (state carried, neighbours read) and counts each
     of its frames. A non-finite output scores RelMSE ``inf`` (never the best)."""
     from . import metrics
@@ -676,6 +690,7 @@ def validate(method: Any, params: Any, frames: list[dict]) -> dict:
 
     fn = inference_fn(method)
     errs: dict[Any, list[float]] = {}
+    halos: dict[Any, int] = {}
     ssims: list[float] = []
     losses: list[float] = []
     vloss = unsupervised_loss(method)
@@ -683,6 +698,7 @@ def validate(method: Any, params: Any, frames: list[dict]) -> dict:
     def score(out, ref, spp):
         e = float(metrics.relmse(out, ref))
         errs.setdefault(spp, []).append(e if math.isfinite(e) else math.inf)
+        halos[spp] = halos.get(spp, 0) + metrics.halo_pixels(out, ref)
         if min(np.shape(ref)[-3:-1]) >= metrics.SSIM_WIN:  # smaller frames have no SSIM
             ssims.append(float(metrics.ssim(jnp.nan_to_num(jnp.asarray(out, jnp.float32)), ref)))
 
@@ -700,7 +716,9 @@ def validate(method: Any, params: Any, frames: list[dict]) -> dict:
     record = {"relmse": float(np.mean(every)), "relmse_geomean": geomean,
               "ssim": float(np.mean(ssims)) if ssims else None,
               "per_spp": {str(k): float(np.mean(v))
-                          for k, v in sorted(errs.items(), key=lambda kv: (kv[0] is None, kv[0] or 0))}}
+                          for k, v in sorted(errs.items(), key=lambda kv: (kv[0] is None, kv[0] or 0))},
+              "halo": int(sum(halos.values())),
+              "halo_per_spp": {str(k): v for k, v in sorted(halos.items(), key=lambda kv: (kv[0] is None, kv[0] or 0))}}
     if losses:
         record["loss"] = float(np.mean(losses))
     return record
@@ -778,7 +796,8 @@ def train(method: Method, data: str | os.PathLike | TrainingData, out_dir: str |
         record = validation_round(method, frames, state)
         state.validation.append(record)
         key = SELECT[run.select][0]
-        if state.best is None or record[key] < state.best.get(key, math.inf):  # (older records lack a key)
+        better = state.best is None or record[key] < state.best.get(key, math.inf)  # (older records lack a key)
+        if better and selectable(run.select, state.validation[0], record):
             state.best = record
             save_weights(out_dir / BEST_DIR, method, run, data, state, val_data=run.val_data, validation=record)
         else:  # the curve beside best/ runs on past the step it holds

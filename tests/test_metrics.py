@@ -136,6 +136,28 @@ def test_temporal_error():
         == (2, 2)
 
 
+def test_halo_pixels_counts_light_far_above_the_references_local_maximum():
+    """A pixel counts when its channel mean is above 4x the reference's largest channel mean within 4 px
+    (Chebyshev; the square clipped at the border), against a direct loop; a mask keeps its pixels only;
+    a non-finite pixel counts; a batch sums its images."""
+    rng = np.random.default_rng(3)
+    ref = (rng.random((23, 17, 3)) ** 8).astype(np.float32)
+    x = (ref * rng.random((23, 17, 3)) * 12).astype(np.float32)
+    o, r = x.mean(-1), ref.mean(-1)
+    want = np.array([[o[i, j] > 4 * r[max(i - 4, 0):i + 5, max(j - 4, 0):j + 5].max() + 1e-6
+                      for j in range(17)] for i in range(23)])
+    assert 0 < want.sum() < want.size and metrics.halo_pixels(x, ref) == want.sum()
+    mask = rng.random((23, 17)) > 0.5
+    assert metrics.halo_pixels(x, ref, mask) == (want & mask).sum()
+    assert metrics.halo_pixels(ref * 3.9, ref) == 0  # within 4x of itself everywhere
+    bad = x.copy()
+    bad[0, 0] = np.nan
+    assert metrics.halo_pixels(bad, ref) == want.sum() + (not want[0, 0])
+    assert metrics.halo_pixels(np.stack([x, ref]), np.stack([ref, ref])) == want.sum()
+    with pytest.raises(ValueError, match=r"halo_pixels: 'mask' has shape \(23, 16\)"):
+        metrics.halo_pixels(x, ref, mask[:, :16])
+
+
 def test_bad_input():
     x, ref = _pair((12, 12, 3))
     with pytest.raises(ValueError, match=r"'x' has shape \(12, 12, 3\) but 'ref' has shape \(12, 11, 3\)"):

@@ -249,6 +249,27 @@ def test_cli_trains_at_the_given_rates_and_selects_by_the_geometric_mean(dataset
     assert curve["selected_step"] == min(vals, key=lambda v: v["relmse_geomean"])["step"]
     with pytest.raises(TrainError, match="select must be one of"):
         dataclasses.replace(TrainConfig(), select="median")
+    # --select geomean_halo: every record counts its halo pixels; best/ is the lowest geometric mean among
+    # the validations with no more of them than the first
+    out = tmp_path / "halo"
+    assert main(["train", "lbf", "--data", str(dataset), "--out", str(out), "--val-data", str(dataset),
+                 "--validate-every", "1", "--steps", "3", "--select", "geomean_halo", "--quiet"]) == 0
+    curve = json.loads((out / "best" / "selection.json").read_text())
+    vals = curve["validation"]
+    assert curve["select"] == "relmse_geomean" and len(vals) == 3
+    for v in vals:
+        assert set(v["halo_per_spp"]) == set(v["per_spp"]) and v["halo"] == sum(v["halo_per_spp"].values()) >= 0
+    ok = [v for v in vals if v["halo"] <= vals[0]["halo"]]
+    assert curve["selected_step"] == min(ok, key=lambda v: v["relmse_geomean"])["step"]
+
+
+def test_halo_selection_never_takes_a_validation_with_more_halo_pixels_than_the_first():
+    from jaxdenoise.train import selectable
+
+    first = {"halo": 3, "relmse_geomean": 0.1}
+    assert selectable("geomean_halo", first, {"halo": 3}) and not selectable("geomean_halo", first, {"halo": 4})
+    assert selectable("geomean", first, {"halo": 40})  # the other rules ignore the count
+    assert selectable("geomean_halo", {"relmse_geomean": 0.1}, {"halo": 40})  # an older run's record: no count
 
 
 # -- schedules, clipping, devices, imports -----------------------------------------------------------
