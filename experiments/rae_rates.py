@@ -85,6 +85,15 @@ and settings in ``--init``, no training: off and every combination of ``--sample
     python experiments/rae_rates.py accumulate --init jaxdenoise/weights/rae --tolerances 0.02,0.05 \
         --level-slack 0.005 --out docs/results/rae_rates/accumulate
 
+``background`` chooses whether `rae` keeps its input on background pixels (a zero normal: the environment
+seen directly; `jaxdenoise.methods.rae.Config.keep_background`, docs/methods/rae.md "Background") for the
+weights and settings in ``--init``, no training: off and on, scored on the same fly-throughs and by the
+same rule as ``taa`` (the documented choice used ``--level-slack 0.005``, fixed before it ran). Written to
+``OUT/background.json``:
+
+    python experiments/rae_rates.py background --init jaxdenoise/weights/rae --level-slack 0.005 \
+        --out docs/results/rae_rates/background
+
 Every training run's record goes to ``OUT/summary.json``.
 """
 from __future__ import annotations
@@ -323,8 +332,8 @@ def _temporal_choice(args, base, params, seqs, settings: dict[str, dict], res: d
 
 
 def choose_temporal(args) -> dict:
-    """The ``taa`` and ``accumulate`` subcommands (module docstring): RelMSE, temporal error and level of
-    each setting of the weights in ``--init`` on the validation fly-throughs, then TAA's rule."""
+    """The ``taa``, ``accumulate`` and ``background`` subcommands (module docstring): RelMSE, temporal error
+    and level of each setting of the weights in ``--init`` on the validation fly-throughs, then TAA's rule."""
     from jaxdenoise.api import resolve
 
     base, params = resolve("rae", args.init)
@@ -335,6 +344,8 @@ def choose_temporal(args) -> dict:
         settings |= {f"a{a:g} w{w} t{t:g}": {"taa_alpha": a, "taa_window": w, "taa_tolerance": t}
                      for a in (float(x) for x in args.alphas.split(","))
                      for w in (int(x) for x in args.taa_windows.split(",")) for t in tolerances}
+    elif args.what == "background":
+        settings = {"off": {"keep_background": False}, "on": {"keep_background": True}}
     else:
         settings = {"off": {"accumulate_samples": 0.0}}
         settings |= {f"s{n:g} t{t:g} c{c:g}": {"accumulate_samples": n, "accumulate_tolerance": t,
@@ -347,7 +358,8 @@ def choose_temporal(args) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("what", choices=("arms", "continue", "level", "clamp", "match", "exact", "taa", "accumulate"))
+    ap.add_argument("what", choices=("arms", "continue", "level", "clamp", "match", "exact", "taa", "accumulate",
+                                     "background"))
     ap.add_argument("--data", default="runs/rae_rates_data")
     ap.add_argument("--val-data", default="data/rae_library_val")
     ap.add_argument("--out", required=True)
@@ -395,13 +407,13 @@ def main() -> None:
                     "frame of n spp keeps at most S / n frames)")
     ap.add_argument("--clamps", default="2,4,8", help="accumulate: the history's clamp factors (0: none)")
     ap.add_argument("--level-slack", type=float, default=0.02,
-                    help="taa: how much further from 1 than off's a chosen setting's level may be "
-                    "(every rate, channel)")
+                    help="taa, accumulate, background: how much further from 1 than off's a chosen setting's "
+                    "level may be (every rate, channel)")
     ap.add_argument("--taa-data", default="data/rae_library_val2",
                     help="taa: more validation fly-throughs scored beside --val-data (comma list; '' for none)")
     args = ap.parse_args()
     out = Path(args.out)
-    if args.what in ("taa", "accumulate"):
+    if args.what in ("taa", "accumulate", "background"):
         res = choose_temporal(args)
         write_json(out / f"{args.what}.json", res)
         print("chosen:", res["chosen"])

@@ -54,9 +54,9 @@ so post-processing such as LBF's spike removal is included), and the score is th
 validation frames at several rates, where the mean follows the noisiest rate; both are recorded
 either way), or with ``select="geomean_halo"`` the geometric mean among the validations with no more
 halo pixels (`metrics.halo_pixels`, recorded in every validation) than the run's first (`selectable`:
-a fine-tune never ships more light drawn where the reference has none than it started with). A method whose module defines ``validation_loss(params, buffers, config)`` (an
-unsupervised loss of one whole frame that reads no reference: GradNet's) also gets its mean over
-the frames recorded as ``loss``, and ``select="loss"`` picks ``best/`` by it: what a user without
+a fine-tune never ships more light drawn where the reference has none than it started with). A
+method whose module defines ``validation_loss(params, buffers, config)`` (an unsupervised loss of one
+whole frame that reads no reference: GradNet's) also gets its mean over the frames recorded as ``loss``, and ``select="loss"`` picks ``best/`` by it: what a user without
 references can do (the reference-based scores are still recorded beside it, never used to choose). Mini-batch losses are too noisy to pick weights by, and a run
 can get worse on some scenes while its training loss falls; ``best/`` is what to ship. The scores
 are kept in the checkpoint's history, so a resumed run continues the same record. A run started

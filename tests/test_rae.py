@@ -420,6 +420,40 @@ def test_keep_exact_pixels():
     assert get("rae").config.keep_exact and not get("rae-paper").config.keep_exact
 
 
+def test_keep_background_pixels():
+    """``keep_background``: a pixel with a zero normal (no surface: the environment seen directly) keeps its
+    input, before and after the level match, alone or with exact pixels; every other pixel and the state
+    are as without it; `needs` reads the normal; the shipped `rae` keeps them, `rae-paper` does not."""
+    cfg = rae.Config(widths=(4, 4, 6, 6, 8), bottleneck=8, exposure="frame", match_level=4.0, match_max_gain=1.2,
+                     aux=())
+    on = dataclasses.replace(cfg, keep_background=True)
+    assert "normal" in rae.needs(on) and "normal" not in rae.needs(cfg)
+    p = rae.init(jax.random.PRNGKey(1), cfg)
+    fr = _frame(16, 12, seed=4)
+    normal = np.asarray(fr.normal).copy()
+    normal[:3] = 0.0  # the top three rows see the sky
+    b = fr.replace(normal=normal, spp=4)
+    s0 = rae.init_state(b, cfg)
+    state_off, off = rae.step(p, s0, b, cfg)
+    state_on, out = rae.step(p, s0, b, on)
+    color = np.asarray(b.color)
+    np.testing.assert_array_equal(np.asarray(out)[:3], color[:3])
+    assert not np.allclose(np.asarray(off)[:3], color[:3])
+    for a, c in zip(state_off, state_on):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(c))
+    plain = dataclasses.replace(cfg, match_level=0.0)  # without the match: only the kept pixels change
+    a = np.array(rae.step(p, s0, b, plain)[1])
+    a[:3] = color[:3]
+    kept = rae.step(p, s0, b, dataclasses.replace(plain, keep_background=True))[1]
+    np.testing.assert_array_equal(np.asarray(kept), a)
+    var = np.full_like(color, 0.1)
+    var[10, 2] = 0.0  # and an exact pixel besides
+    both = rae.step(p, s0, b.replace(color_var=var), dataclasses.replace(plain, keep_background=True, keep_exact=True))
+    a[10, 2] = color[10, 2]
+    np.testing.assert_array_equal(np.asarray(both[1]), a)
+    assert get("rae").config.keep_background and not get("rae-paper").config.keep_background
+
+
 def test_rate_channel_and_linear_input():
     """``rate_input``: one more channel, log2(spp) / RATE_SCALE, per pixel from a sample-count map;
     a frame without ``spp`` is refused. ``input_transform = "linear"``: the demodulated colour itself."""

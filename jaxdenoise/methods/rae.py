@@ -133,6 +133,11 @@ class Config:
     # recurrent state is not touched; inference only.
     keep_exact: bool = dataclasses.field(default=False, metadata={"fine_tune": True})
     exact_window: int = dataclasses.field(default=0, metadata={"fine_tune": True})
+    # Background (ours, issue 34; docs/methods/rae.md "Background"): with `keep_background` a pixel whose
+    # every sample found no surface (a zero `normal`, `jaxdenoise.view.has_hit`: the environment seen
+    # directly or through delta bounces) keeps its input's colour, where and when `keep_exact` keeps exact
+    # pixels (before and after TAA and the level match). The recurrent state is not touched; inference only.
+    keep_background: bool = dataclasses.field(default=False, metadata={"fine_tune": True})
     # Input accumulation (ours, issue 34; docs/methods/rae.md "Input accumulation"): with `accumulate_samples`
     # S > 0 each frame's noisy colour (its outliers cut first when `outlier_clamp` is on) is averaged with the
     # previous frames' reprojected through the world positions and cameras (`jaxdenoise.filters.accumulate_step`:
@@ -289,6 +294,8 @@ def needs(config: Config) -> frozenset[str]:
         out.add("spp")
     if config.keep_exact:
         out.add("color_var")
+    if config.keep_background:
+        out.add("normal")
     if config.taa_alpha or config.accumulate_samples:
         out |= {"position", "normal", "world_to_ndc"}
     if config.refine_sigma:
@@ -543,10 +550,15 @@ def step(params: dict, state: tuple, buffers: Buffers, config: Config) -> tuple[
     hidden, y = _forward(params, x, hidden, config)
     hidden = hidden + ((acc,) if config.accumulate_samples else ())
     out = jnp.maximum(_output(nn.crop_to(y, size), _get(buffers, "albedo"), scale, config), 0.0)
+    kept = None
     if config.keep_exact:  # exact pixels kept before TAA and the level match, and after them
-        exact = exact_mask(_get(buffers, "color"), _get(buffers, "color_var", optional=True),
-                           _get(buffers, "spp", optional=True), window=config.exact_window)
-        out = jnp.where(exact, c, out)
+        kept = exact_mask(_get(buffers, "color"), _get(buffers, "color_var", optional=True),
+                          _get(buffers, "spp", optional=True), window=config.exact_window)
+    if config.keep_background:  # the environment seen directly: its input is nearly noise-free
+        bg = ~view.has_hit(_get(buffers, "normal"))
+        kept = bg if kept is None else kept | bg
+    if kept is not None:
+        out = jnp.where(kept, c, out)
     if config.refine_sigma:  # in the exposure-scaled units, so f(k x) = k f(x) still holds
         out = refine(out * scale, _get(buffers, "albedo"), _get(buffers, "normal"), sigma=config.refine_sigma,
                      range_sigma=config.refine_range, albedo_sigma=config.refine_albedo,
@@ -564,9 +576,8 @@ def step(params: dict, state: tuple, buffers: Buffers, config: Config) -> tuple[
         out = match_to_input(out * scale, target * scale, config.match_level, spike=config.match_spike,
                              floor=color.EXPOSURE_LEVEL, max_gain=config.match_max_gain or float("inf"),
                              spp=spp) / scale
-    if config.keep_exact and (config.match_level or config.taa_alpha or config.refine_sigma
-                              or config.output_clamp):
-        out = jnp.where(exact, c, out)
+    if kept is not None and (config.match_level or config.taa_alpha or config.refine_sigma or config.output_clamp):
+        out = jnp.where(kept, c, out)
     return hidden, out
 
 
