@@ -327,9 +327,10 @@ def rae_frames(results: Path, rel: str, methods: list[str]) -> str:
 bind("rae-temporal-means", rae_temporal_means, "rae_temporal.json", ["input", "oidn", "rae", "rae-per-frame"])
 # issue 34: the scene library's evaluation fly-throughs, the rate-general rae against the paper's recipe
 bind("rae-rates-temporal", rae_temporal_means, "rae_rates/temporal.json",
-     ["input", "oidn", "oidn+taa", "rae-paper", "rae-0.9.15", "rae-0.9.16", "rae-0.9.19", "rae"])
+     ["input", "oidn", "oidn+taa", "rae-paper", "rae-0.9.15", "rae-0.9.16", "rae-0.9.19", "rae-0.9.20", "rae"])
 bind("rae-rates-frames", rae_frames, "rae_rates/temporal.json",
-     ["oidn", "oidn+taa", "rae-paper", "rae-0.9.15", "rae-0.9.16", "rae-0.9.19", "rae", "rae-per-frame"])
+     ["oidn", "oidn+taa", "rae-paper", "rae-0.9.15", "rae-0.9.16", "rae-0.9.19", "rae-0.9.20", "rae",
+      "rae-per-frame"])
 
 
 @renderer("rae-outlier-clamp")
@@ -421,6 +422,14 @@ def _rae_accumulate(results: Path) -> str:
         "off, or sS tT cC = `accumulate_samples` S (a frame of n spp keeps at most S / n frames of history: at "
         "n >= S none, so those rows repeat off's), the tangent-plane tolerance T (a fraction of the depth), the "
         "history's clamp at C x the larger of the frame's level and its 3x3 maximum."))
+
+
+@renderer("rae-background")
+def _rae_background(results: Path) -> str:
+    """Keeping the input on background pixels, measured on the validation fly-throughs (rae_rates.py background)."""
+    return _temporal_choice_table(load(results, "rae_rates/background/background.json"), (
+        "off, or on = `keep_background` (a pixel with a zero normal, the environment seen directly, keeps its "
+        "input)."))
 
 
 @renderer("rae-accumulate-knee")
