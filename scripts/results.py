@@ -353,7 +353,17 @@ def _rae_outlier_clamp(results: Path) -> str:
 @renderer("rae-level-match")
 def _rae_level_match(results: Path) -> str:
     """The level match at inference measured on the validation fly-throughs (experiments/rae_rates.py match)."""
-    d = load(results, "rae_rates/level_match.json")
+    return _level_match_table(load(results, "rae_rates/level_match.json"))
+
+
+@renderer("rae-level-match-0921")
+def _rae_level_match_0921(results: Path) -> str:
+    """The level match's gain limit re-chosen on 0.9.21's pipeline, the gain axis extended (rae_rates.py match)."""
+    return _level_match_table(load(results, "rae_rates/match_0921/level_match.json"))
+
+
+def _level_match_table(d: dict) -> str:
+    """A row per setting of an ``experiments/rae_rates.py match`` choice, with its rule."""
     spps = sorted(d["settings"]["off"]["per_spp"], key=int)
     rows = [[("**" + k + "**" if k == d["chosen"] else k), num(r["relmse_geomean"], ".4g")]
             + [num(r["per_spp"][s], ".4g") for s in spps]

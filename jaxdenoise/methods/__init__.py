@@ -39,7 +39,7 @@ _REGISTRY: dict[str, tuple[str, dict[str, Any]]] = {
                                          "refine_range": 0.4, "refine_albedo": 0.03, "refine_normal": 0.1}),
     "demc-paper": ("jaxdenoise.methods.demc", {"recipe": "paper", "train_spps": (4,), "exposure": "none",
                                                "level_weight": 0.0}),
-    "rae": ("jaxdenoise.methods.rae", {"outlier_clamp": 8.0, "match_level": 8.0, "match_max_gain": 1.3,
+    "rae": ("jaxdenoise.methods.rae", {"outlier_clamp": 8.0, "match_level": 8.0, "match_max_gain": 3.0,
                                        "match_spike": 8.0, "keep_exact": True, "exact_window": 3,
                                        "taa_alpha": 0.25, "taa_window": 3, "taa_tolerance": 0.0,
                                        "refine_sigma": 3.0, "refine_range": 0.4, "refine_albedo": 0.03,
