@@ -364,7 +364,7 @@ def test_spike_term_charges_only_light_above_the_targets_neighbourhood():
 def test_level_match_setting():
     """``match_level``: the output's low-pass level is moved toward the input's within the gain limit
     (`jaxdenoise.filters.match_to_input`), the state is the network's, f(k x) = k f(x) holds; it needs
-    exposure "frame"; on for `rae` (sigma 8, limit 1.3, cut 8), off for `rae-paper`."""
+    exposure "frame"; on for `rae` (sigma 8, limit 3, cut 8), off for `rae-paper`."""
     cfg = rae.Config(widths=(4, 4, 6, 6, 8), bottleneck=8, exposure="frame")
     on = dataclasses.replace(cfg, match_level=4.0, match_max_gain=1.2)
     p, fr, off, out = _step_off_on(cfg, on)
