@@ -327,10 +327,11 @@ def rae_frames(results: Path, rel: str, methods: list[str]) -> str:
 bind("rae-temporal-means", rae_temporal_means, "rae_temporal.json", ["input", "oidn", "rae", "rae-per-frame"])
 # issue 34: the scene library's evaluation fly-throughs, the rate-general rae against the paper's recipe
 bind("rae-rates-temporal", rae_temporal_means, "rae_rates/temporal.json",
-     ["input", "oidn", "oidn+taa", "rae-paper", "rae-0.9.15", "rae-0.9.16", "rae-0.9.19", "rae-0.9.20", "rae"])
+     ["input", "oidn", "oidn+taa", "rae-paper", "rae-0.9.15", "rae-0.9.16", "rae-0.9.19", "rae-0.9.20", "rae-gain1.3",
+      "rae"])
 bind("rae-rates-frames", rae_frames, "rae_rates/temporal.json",
-     ["oidn", "oidn+taa", "rae-paper", "rae-0.9.15", "rae-0.9.16", "rae-0.9.19", "rae-0.9.20", "rae",
-      "rae-per-frame"])
+     ["oidn", "oidn+taa", "rae-paper", "rae-0.9.15", "rae-0.9.16", "rae-0.9.19", "rae-0.9.20", "rae-gain1.3",
+      "rae", "rae-per-frame"])
 
 
 @renderer("rae-outlier-clamp")
