@@ -1101,6 +1101,7 @@ STUDIES: dict[str, tuple[str, str]] = {
     "demc_rates/indirect_val/demc_levels.md": ("demc_levels", "demc_rates/indirect_val/demc_levels.json"),
     "rae_rates/demc_levels.md": ("demc_levels", "rae_rates/demc_levels.json"),
     "rae_rates/level_term/demc_levels.md": ("demc_levels", "rae_rates/level_term/demc_levels.json"),
+    "rae_rates/single_0921/demc_levels.md": ("demc_levels", "rae_rates/single_0921/demc_levels.json"),
     "level_correction/level_correction.md": ("level_correction", "level_correction/level_correction.json"),
     "level_correction/choice.md": ("level_correction", "level_correction/choice.json"),
     "level_correction_val4/choice.md": ("level_correction", "level_correction_val4/choice.json"),
