@@ -13,8 +13,8 @@ its output scale with its input's exposure?
    whose rays all hit an area emitter (eroded by one pixel) over the reference's, on frames that show
    one (the check: within 5 %). ``--masks none`` measures every lit pixel (the pages before 0.9.2).
 2. **Halo**: pixels whose output (channel mean) is above 4x the reference's largest value in the
-   9 x 9 square around them (`jaxdenoise.metrics.halo_pixels`), summed over the frames of a rate: every pixel, and (with masks) the
-   surface pixels alone, which issue 34's check counts.
+   9 x 9 square around them (`jaxdenoise.metrics.halo_pixels`), summed over the frames of a rate: every
+   pixel, and (with masks) the surface pixels alone, which issue 34's check counts.
 3. **Exposure**: on the first frame of each folder at 4 spp, ``f(k x)`` against ``k f(x)`` for
    ``k`` in 1/16, 1/4, 4, 16: the largest ``|f(k x) - k f(x)|`` over the largest ``|k f(x)|``.
 

@@ -56,7 +56,8 @@ either way), or with ``select="geomean_halo"`` the geometric mean among the vali
 halo pixels (`metrics.halo_pixels`, recorded in every validation) than the run's first (`selectable`:
 a fine-tune never ships more light drawn where the reference has none than it started with). A
 method whose module defines ``validation_loss(params, buffers, config)`` (an unsupervised loss of one
-whole frame that reads no reference: GradNet's) also gets its mean over the frames recorded as ``loss``, and ``select="loss"`` picks ``best/`` by it: what a user without
+whole frame that reads no reference: GradNet's) also gets its mean over the frames recorded as
+``loss``, and ``select="loss"`` picks ``best/`` by it: what a user without
 references can do (the reference-based scores are still recorded beside it, never used to choose). Mini-batch losses are too noisy to pick weights by, and a run
 can get worse on some scenes while its training loss falls; ``best/`` is what to ship. The scores
 are kept in the checkpoint's history, so a resumed run continues the same record. A run started
@@ -718,7 +719,8 @@ def validate(method: Any, params: Any, frames: list[dict]) -> dict:
               "per_spp": {str(k): float(np.mean(v))
                           for k, v in sorted(errs.items(), key=lambda kv: (kv[0] is None, kv[0] or 0))},
               "halo": int(sum(halos.values())),
-              "halo_per_spp": {str(k): v for k, v in sorted(halos.items(), key=lambda kv: (kv[0] is None, kv[0] or 0))}}
+              "halo_per_spp": {str(k): v
+                               for k, v in sorted(halos.items(), key=lambda kv: (kv[0] is None, kv[0] or 0))}}
     if losses:
         record["loss"] = float(np.mean(losses))
     return record
