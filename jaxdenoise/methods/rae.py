@@ -24,7 +24,8 @@ eighth channel holds ``log2(spp) / RATE_SCALE`` (per pixel on an adaptively samp
 ``outlier_clamp`` (8 for ``rae``, 0 in `Config`) cuts isolated input spikes
 (`jaxdenoise.filters.clamp_outliers`), in place of the paper's path-space regularization (Sec. 3.1)
 that kept them out of its inputs. ``keep_exact`` (on for ``rae``) keeps the input where a frame's samples
-all agreed (`jaxdenoise.filters.exact_mask`: a directly seen light), as `demc` does. Each output frame then
+all agreed (`jaxdenoise.filters.exact_mask`: a directly seen light), as `demc` does, and ``keep_background``
+(on for ``rae``) where no sample found a surface (the environment seen directly). Each output frame then
 goes through ``refine_sigma``'s feature-guided cross-bilateral pass (`jaxdenoise.filters.refine`, as
 `demc`), the output clamp (``output_clamp``, off for ``rae``: isolated peaks cut), TAA over a sequence (``taa_alpha``,
 Sec. 5.4) and the level match (``match_level``): `step`.
