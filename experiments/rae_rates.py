@@ -91,7 +91,7 @@ weights and settings in ``--init``, no training: off and on, scored on the same 
 same rule as ``taa`` (the documented choice used ``--level-slack 0.005``, fixed before it ran). Written to
 ``OUT/background.json``:
 
-    python experiments/rae_rates.py background --init jaxdenoise/weights/rae --level-slack 0.005 \
+    python experiments/rae_rates.py background --init runs/rae_0920 --level-slack 0.005 \
         --out docs/results/rae_rates/background
 
 Every training run's record goes to ``OUT/summary.json``.
@@ -310,7 +310,8 @@ def _temporal_choice(args, base, params, seqs, settings: dict[str, dict], res: d
             rows.append({"folder": d, "spp": int(f["spp"]),
                          "relmse": float(np.mean([metrics.relmse(o, r) for o, r in zip(outs, refs)])),
                          "temporal": float(metrics.temporal_error(outs, refs)),
-                         "levels": [frame_levels(o, r) for o, r in zip(outs[1:], refs[1:])]})
+                         "levels": [frame_levels(o, r) for o, r in zip(outs[1:], refs[1:])],
+                         "halo": metrics.halo_pixels(outs, refs)})
         per_spp = {str(s): {"relmse": float(np.mean([r["relmse"] for r in rows if r["spp"] == s])),
                             "temporal": float(np.mean([r["temporal"] for r in rows if r["spp"] == s])),
                             "level": np.median([lv for r in rows if r["spp"] == s for lv in r["levels"]], 0).tolist()}

@@ -402,12 +402,16 @@ def _temporal_choice_table(d: dict, legend: str) -> str:
     """A setting's row per setting of an ``experiments/rae_rates.py`` temporal choice (``taa``, ``accumulate``):
     score and, per rate, RelMSE / temporal error / level; ``legend`` says what the labels mean."""
     spps = sorted(d["settings"]["off"]["per_spp"], key=int)
+    halo = all("halo" in row for r in d["settings"].values() for row in r["rows"])  # recorded since 0.9.21
     rows = [[("**" + k + "**" if k == d["chosen"] else k), num(r["score"], ".4g")]
             + [f"{num(r['per_spp'][x]['relmse'], '.4g')} / {num(r['per_spp'][x]['temporal'], '.4g')} / "
                + "/".join(num(v, ".3f") for v in r["per_spp"][x]["level"]) for x in spps]
+            + ([str(sum(row["halo"] for row in r["rows"]))] if halo else [])
             for k, r in d["settings"].items()]
-    return (table(["setting", "score", *(f"{x} spp: RelMSE / temporal error / level R/G/B" for x in spps)], rows,
-                  "lr" + "r" * len(spps))
+    return (table(["setting", "score", *(f"{x} spp: RelMSE / temporal error / level R/G/B" for x in spps)]
+                  + (["halo px"] if halo else []), rows, "lr" + "r" * (len(spps) + halo))
+            + ("\n\nHalo px: pixels above 4x the reference's 9x9 maximum (`jaxdenoise.metrics.halo_pixels`), every "
+               "pixel of every frame of the fly-throughs." if halo else "")
             + f"\n\nSettings: {legend} Per rate: the means over the validation fly-throughs (state carried) of their "
             "frames' mean RelMSE and of their temporal error, and the colour level of their frames after the first "
             "(per channel, the median over those frames of the median box-mean ratio over every lit pixel). Score: the "
