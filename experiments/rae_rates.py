@@ -94,6 +94,15 @@ same rule as ``taa`` (the documented choice used ``--level-slack 0.005``, fixed 
     python experiments/rae_rates.py background --init runs/rae_0920 --level-slack 0.005 \
         --out docs/results/rae_rates/background
 
+``match-frames`` chooses the level match over time (`jaxdenoise.methods.rae.Config.match_frames`,
+``match_tolerance``; docs/methods/rae.md "The level match over time") for the weights and settings in
+``--init``, no training: off (each frame's own gain) and every combination of ``--match-frames`` x
+``--tolerances``, scored on the same fly-throughs and by the same rule as ``taa`` (the documented choice
+used ``--level-slack 0.005``, fixed before it ran). Written to ``OUT/match-frames.json``:
+
+    python experiments/rae_rates.py match-frames --init jaxdenoise/weights/rae --level-slack 0.005 \
+        --out docs/results/rae_rates/match_frames
+
 Every training run's record goes to ``OUT/summary.json``.
 """
 from __future__ import annotations
@@ -333,7 +342,7 @@ def _temporal_choice(args, base, params, seqs, settings: dict[str, dict], res: d
 
 
 def choose_temporal(args) -> dict:
-    """The ``taa``, ``accumulate`` and ``background`` subcommands (module docstring): RelMSE, temporal error
+    """The ``taa``, ``accumulate``, ``background`` and ``match-frames`` subcommands (module docstring): RelMSE, temporal error
     and level of each setting of the weights in ``--init`` on the validation fly-throughs, then TAA's rule."""
     from jaxdenoise.api import resolve
 
@@ -345,6 +354,10 @@ def choose_temporal(args) -> dict:
         settings |= {f"a{a:g} w{w} t{t:g}": {"taa_alpha": a, "taa_window": w, "taa_tolerance": t}
                      for a in (float(x) for x in args.alphas.split(","))
                      for w in (int(x) for x in args.taa_windows.split(",")) for t in tolerances}
+    elif args.what == "match-frames":
+        settings = {"off": {"match_frames": 0.0}}
+        settings |= {f"f{n:g} t{t:g}": {"match_frames": n, "match_tolerance": t}
+                     for n in (float(x) for x in args.match_frames.split(",")) for t in tolerances}
     elif args.what == "background":
         settings = {"off": {"keep_background": False}, "on": {"keep_background": True}}
     else:
@@ -360,7 +373,7 @@ def choose_temporal(args) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("what", choices=("arms", "continue", "level", "clamp", "match", "exact", "taa", "accumulate",
-                                     "background"))
+                                     "background", "match-frames"))
     ap.add_argument("--data", default="runs/rae_rates_data")
     ap.add_argument("--val-data", default="data/rae_library_val")
     ap.add_argument("--out", required=True)
@@ -402,19 +415,21 @@ def main() -> None:
                     help="exact: validation folders of single frames scored beside the fly-throughs")
     ap.add_argument("--alphas", default="0.5,0.25,0.1", help="taa: blend weights (1 / the longest history)")
     ap.add_argument("--taa-windows", default="0,3", help="taa: clamp neighbourhoods (0: no clamp)")
-    ap.add_argument("--tolerances", default="0,0.02,0.1", help="taa, accumulate: tangent-plane tolerances (0: no "
-                    "test)")
+    ap.add_argument("--tolerances", default="0,0.02,0.1", help="taa, accumulate, match-frames: tangent-plane "
+                    "tolerances (0: no test)")
     ap.add_argument("--samples", default="2,4,8,16", help="accumulate: samples per pixel to accumulate up to (a "
                     "frame of n spp keeps at most S / n frames)")
+    ap.add_argument("--match-frames", default="2,4,8", help="match-frames: the longest histories of the level "
+                    "match's gain, in frames")
     ap.add_argument("--clamps", default="2,4,8", help="accumulate: the history's clamp factors (0: none)")
     ap.add_argument("--level-slack", type=float, default=0.02,
-                    help="taa, accumulate, background: how much further from 1 than off's a chosen setting's "
+                    help="taa, accumulate, background, match-frames: how much further from 1 than off's a chosen setting's "
                     "level may be (every rate, channel)")
     ap.add_argument("--taa-data", default="data/rae_library_val2",
                     help="taa: more validation fly-throughs scored beside --val-data (comma list; '' for none)")
     args = ap.parse_args()
     out = Path(args.out)
-    if args.what in ("taa", "accumulate", "background"):
+    if args.what in ("taa", "accumulate", "background", "match-frames"):
         res = choose_temporal(args)
         write_json(out / f"{args.what}.json", res)
         print("chosen:", res["chosen"])

@@ -328,10 +328,10 @@ bind("rae-temporal-means", rae_temporal_means, "rae_temporal.json", ["input", "o
 # issue 34: the scene library's evaluation fly-throughs, the rate-general rae against the paper's recipe
 bind("rae-rates-temporal", rae_temporal_means, "rae_rates/temporal.json",
      ["input", "oidn", "oidn+taa", "rae-paper", "rae-0.9.15", "rae-0.9.16", "rae-0.9.19", "rae-0.9.20", "rae-gain1.3",
-      "rae"])
+      "rae-0.9.21", "rae"])
 bind("rae-rates-frames", rae_frames, "rae_rates/temporal.json",
      ["oidn", "oidn+taa", "rae-paper", "rae-0.9.15", "rae-0.9.16", "rae-0.9.19", "rae-0.9.20", "rae-gain1.3",
-      "rae", "rae-per-frame"])
+      "rae-0.9.21", "rae", "rae-per-frame"])
 
 
 @renderer("rae-outlier-clamp")
@@ -445,6 +445,24 @@ def _rae_background(results: Path) -> str:
     return _temporal_choice_table(load(results, "rae_rates/background/background.json"), (
         "off, or on = `keep_background` (a pixel with a zero normal, the environment seen directly, keeps its "
         "input)."))
+
+
+@renderer("rae-match-frames")
+def _rae_match_frames(results: Path) -> str:
+    """The level match over time, measured on the validation fly-throughs (rae_rates.py match-frames)."""
+    return _temporal_choice_table(load(results, "rae_rates/match_frames/match-frames.json"), (
+        "off (each frame's own gain), or fF tT = `match_frames` F (the match's target and its gain span at most F "
+        "frames: a pixel whose input the accumulation averaged over n frames keeps F / n frames of gains), the "
+        "tangent-plane tolerance T (a fraction of the depth; 0: no geometric test)."))
+
+
+@renderer("rae-match-frames-first")
+def _rae_match_frames_first(results: Path) -> str:
+    """The first grid of the level match over time: F frames of gains at every rate (replaced)."""
+    return _temporal_choice_table(load(results, "rae_rates/match_frames/first/match-frames.json"), (
+        "off, or fF tT = F frames of gains at every pixel, whatever the input accumulation averaged, the tangent-plane "
+        "tolerance T (a version of `match_frames` measured and replaced: the field now counts the target's frames "
+        "too)."))
 
 
 @renderer("rae-accumulate-knee")

@@ -9,7 +9,7 @@ import pytest
 from jax.test_util import check_grads as _check_grads
 
 from jaxdenoise.filters import (DELTA, ZETA, FilterError, bilateral, clamp_outliers, cross_bilateral, cross_nlm,
-                                drop_constant_features, gaussian, match_level, match_to_input, prefilter_features,
+                                drop_constant_features, gaussian, input_gain, level_gain, match_level, match_to_input, prefilter_features,
                                 remove_spikes, spatiotemporal_cross_bilateral)
 
 H, W = 8, 8
@@ -371,6 +371,10 @@ def test_match_level_puts_the_low_pass_level_at_the_target_and_keeps_the_detail(
                                np.asarray(match_level(image, spiky * cut[..., None], 8.0, 1e-3, max_gain=1.5)),
                                rtol=1e-5)
     assert float(np.max(np.asarray(match_to_input(image, spiky, 8.0, spike=2.0, floor=0.1)))) < 2.0
+    np.testing.assert_allclose(image * np.asarray(input_gain(image, spiky, 8.0, spike=2.0, floor=0.1, max_gain=1.5)),
+                               np.asarray(match_to_input(image, spiky, 8.0, spike=2.0, floor=0.1, max_gain=1.5)),
+                               rtol=1e-6)  # the gains the two multiply by
+    np.testing.assert_allclose(image * np.asarray(level_gain(image, target, 8.0, 1e-3)), out, rtol=1e-6)
     assert float(np.max(np.asarray(match_level(image, clamp_outliers(spiky, 2.0, 0.1), 8.0, 1e-3)))) > 10.0
     np.testing.assert_allclose(np.asarray(clamp_outliers(spiky, 2.0, 0.1, against="median")),
                                spiky * cut[..., None], rtol=1e-6)

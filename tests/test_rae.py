@@ -620,6 +620,56 @@ def test_training_on_accumulated_inputs():
         rae.num_params(dataclasses.replace(cfg, accumulate_samples=0.0))
 
 
+def test_match_frames_setting():
+    """``match_frames``: the level match's gain averaged over the previous frames' gains reprojected
+    (`jaxdenoise.filters.accumulate_step`, no clamp), over match_frames / (the frames the input accumulation
+    averaged) frames; the state carries it after TAA's; the first frame, `apply` and a frame without
+    world_to_ndc (its own gain, the history kept) as without it; bad settings refused by name."""
+    from jaxdenoise.filters import accumulate_step, input_gain, taa_init
+
+    cfg = dataclasses.replace(TINY, exposure="frame", match_level=4.0, taa_alpha=0.25)  # gain unlimited
+    on = dataclasses.replace(cfg, match_frames=4.0, match_tolerance=0.0)  # the frames' positions are random
+    assert {"position", "normal", "world_to_ndc"} <= rae.needs(dataclasses.replace(on, taa_alpha=0.0))
+    p = rae.init(jax.random.PRNGKey(4), cfg)  # a random network about 7x too bright: gains of about 0.14
+    frames = _pinhole_frames(4)
+    s_off, s_on, gains = rae.init_state(frames[0], cfg), rae.init_state(frames[0], on), taa_init((16, 12, 3))
+    assert len(s_on) == len(s_off) + 1
+    network = dataclasses.replace(cfg, match_level=0.0)  # the same frames before the match
+    for k, f in enumerate(frames):
+        s_off, own = rae.step(p, s_off, f, cfg)
+        pre = rae.step(p, s_on[:-1], f, network)[1]
+        s_on, out = rae.step(p, s_on, f, on)
+        scale = rae.exposure_scale(f, cfg)
+        gain = input_gain(pre * scale, color.radiance(f.color) * scale, 4.0, spike=cfg.match_spike,
+                          floor=color.EXPOSURE_LEVEL)
+        gains, gain, _ = accumulate_step(gains, gain, f.position, f.normal, f.world_to_ndc, frames=4.0,
+                                         tolerance=0.0, clamp=0.0)
+        np.testing.assert_allclose(np.asarray(out), np.asarray(pre * gain), rtol=2e-5, atol=1e-6)
+        for a, b in zip(jax.tree_util.tree_leaves(s_off), jax.tree_util.tree_leaves(s_on[:-1])):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+        if k == 0:
+            np.testing.assert_array_equal(np.asarray(out), np.asarray(own))
+    assert not np.allclose(np.asarray(out), np.asarray(own), rtol=1e-4)  # earlier gains were averaged in
+    np.testing.assert_array_equal(np.asarray(rae.apply(p, frames[1], on)), np.asarray(rae.apply(p, frames[1], cfg)))
+    bare = frames[1].replace(world_to_ndc=None)
+    s2, out2 = rae.step(p, s_on, bare, on)
+    np.testing.assert_array_equal(np.asarray(out2), np.asarray(rae.step(p, s_on[:-1], bare, cfg)[1]))
+    for a, b in zip(jax.tree_util.tree_leaves(s2[-1]), jax.tree_util.tree_leaves(s_on[-1])):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    # with the input accumulation a pixel keeps match_frames / (the frames its input averaged) gains
+    acc = dataclasses.replace(on, accumulate_samples=2.0, accumulate_tolerance=0.0, match_frames=2.0)
+    s = rae.init_state(frames[0], acc)
+    for f in frames:
+        s, out = rae.step(p, s, f, acc)
+    s_own = rae.init_state(frames[0], dataclasses.replace(acc, match_frames=0.0))
+    for f in frames:
+        s_own, own = rae.step(p, s_own, f, dataclasses.replace(acc, match_frames=0.0))
+    np.testing.assert_allclose(np.asarray(out), np.asarray(own), rtol=1e-6)  # 2 / 2 frames: no gain history
+    for bad in ({"match_frames": -1.0}, {"match_frames": 4.0, "match_level": 0.0}, {"match_tolerance": np.inf}):
+        with pytest.raises(ValueError, match="config.match_frames"):
+            rae.num_params(dataclasses.replace(on, **bad))
+
+
 def test_taa_setting():
     """``taa_alpha`` (`jaxdenoise.filters.taa_step`): the state carries the TAA history beside the
     recurrent one; each frame is the network's output without TAA passed through `taa_step` with the

@@ -4,7 +4,8 @@ All filters take and return ``(H, W, C)`` float arrays, accept scalar or per-pix
 parameters, are differentiable in every continuous parameter, keep static sizes (``radius``,
 ``patch_radius``) keyword-only, and never materialize an ``H x W x window^2`` weight tensor.
 See each module's docstring for the exact equations and edge handling. Two helpers that act on a
-network's input or output, `clamp_outliers`, `match_level` and `match_to_input`, take ``(..., H, W, C)``
+network's input or output, `clamp_outliers`, `match_level` and `match_to_input` (with their gains,
+`level_gain` and `input_gain`), take ``(..., H, W, C)``
 arrays with any leading axes and static scalar parameters instead (no per-pixel maps, no parameter
 gradients); `check_match_settings` refuses a network config's settings for `match_to_input`.
 `exact_mask` (a boolean mask, not a filter) says where a frame's estimate is exact, for a denoiser to keep
@@ -19,7 +20,7 @@ from .bilateral import (DELTA, ZETA, bilateral, cross_bilateral, drop_constant_f
                         spatiotemporal_cross_bilateral)
 from .exact import check_exact_window, exact_mask
 from .gaussian import gaussian, gaussian_kernel_1d
-from .level import check_match_settings, match_level, match_to_input
+from .level import check_match_settings, input_gain, level_gain, match_level, match_to_input
 from .nlm import cross_nlm, prefilter_features
 from .refine import check_refine_settings, refine
 from .spikes import clamp_outliers, remove_spikes
@@ -44,6 +45,8 @@ __all__ = [
     "gaussian",
     "gaussian_kernel_1d",
     "hdr_weight",
+    "input_gain",
+    "level_gain",
     "match_level",
     "match_to_input",
     "prefilter_features",

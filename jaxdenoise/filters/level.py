@@ -3,6 +3,8 @@
 
 ``match_level(image, target, sigma, eps, *, max_gain=inf) -> image``
 ``match_to_input(output, color, sigma, *, spike, floor, max_gain=inf, spp=None) -> image``
+``level_gain(image, target, sigma, eps, *, max_gain=inf)``, ``input_gain(output, color, sigma, ...)``: the
+gains the two multiply by (a caller may average them over frames: `rae`'s ``match_frames``)
 ``check_match_settings(owner, sigma, spike, max_gain, by_rate)`` (a network config's settings for it)
 
 Each channel of ``image`` times the gain ``(G(target) + eps) / (G(image) + eps)``, limited to
@@ -55,6 +57,15 @@ from .spikes import clamp_outliers
 def match_level(image, target, sigma: float, eps: float, *, max_gain: float = float("inf")) -> jax.Array:
     """``image`` times ``(G(target) + eps) / (G(image) + eps)`` per channel, within ``[1 / max_gain,
     max_gain]`` (module docstring)."""
+    image = jnp.asarray(image)
+    out_dtype = image.dtype if jnp.issubdtype(image.dtype, jnp.floating) else jnp.float32
+    gain = level_gain(image, target, sigma, eps, max_gain=max_gain)
+    return (image.astype(gain.dtype) * gain).astype(out_dtype)
+
+
+def level_gain(image, target, sigma: float, eps: float, *, max_gain: float = float("inf")) -> jax.Array:
+    """The per-channel gain `match_level` multiplies ``image`` by, ``(..., H, W, C)`` in float32 at least:
+    a caller may average it over frames before applying it (`rae`'s ``match_frames``)."""
     shape = tuple(np.shape(image))
     if len(shape) < 3:
         raise FilterError(f"argument 'image' has shape {shape}; expected (..., H, W, C)")
@@ -69,12 +80,11 @@ def match_level(image, target, sigma: float, eps: float, *, max_gain: float = fl
         as_image(jnp.reshape(a, (-1,) + shape[-2:]), name)
     image, target = jnp.asarray(image), jnp.asarray(target)
     dt = compute_dtype(image, target)
-    out_dtype = image.dtype if jnp.issubdtype(image.dtype, jnp.floating) else jnp.float32
     flat = (-1,) + shape[-3:]
     xs, ts = jnp.reshape(image, flat).astype(dt), jnp.reshape(target, flat).astype(dt)
     low = jax.vmap(lambda a: jnp.maximum(gaussian(a, float(sigma)), 0.0))
     gain = jnp.clip((low(ts) + float(eps)) / (low(xs) + float(eps)), 1.0 / float(max_gain), float(max_gain))
-    return jnp.reshape(xs * gain, shape).astype(out_dtype)
+    return jnp.reshape(gain, shape)
 
 
 def check_match_settings(owner: str, sigma: float, spike: float, max_gain: float, by_rate: bool) -> None:
@@ -93,6 +103,15 @@ def match_to_input(output, color, sigma: float, *, spike: float, floor: float,
     """`match_level` of a denoiser's ``output`` against its noisy input ``color`` (``(..., H, W, 3)``)
     with outliers cut at ``spike`` times the larger of ``floor`` and their 3 x 3 median luminance
     (with ``spp``: ``1 + (spike - 1) / sqrt(spp)`` times), ``eps`` 1 % of ``floor`` (module docstring)."""
+    output = jnp.asarray(output)
+    out_dtype = output.dtype if jnp.issubdtype(output.dtype, jnp.floating) else jnp.float32
+    gain = input_gain(output, color, sigma, spike=spike, floor=floor, max_gain=max_gain, spp=spp)
+    return (output.astype(gain.dtype) * gain).astype(out_dtype)
+
+
+def input_gain(output, color, sigma: float, *, spike: float, floor: float,
+               max_gain: float = float("inf"), spp=None) -> jax.Array:
+    """The gain `match_to_input` multiplies ``output`` by (`level_gain` against the outlier-cut input)."""
     for name, v in (("spike", spike), ("floor", floor)):
         if not is_concrete(v) or np.ndim(v) or not 0 < float(v) < np.inf:
             raise FilterError(f"argument '{name}' is {v!r}; expected a static finite number > 0")
@@ -104,4 +123,4 @@ def match_to_input(output, color, sigma: float, *, spike: float, floor: float,
             raise FilterError(f"argument 'spp' is {spp!r}; expected samples per pixel >= 1")
         factor = 1.0 + (factor - 1.0) / jnp.sqrt(jnp.maximum(jnp.asarray(spp, jnp.float32), 1.0))
     target = clamp_outliers(color, factor, floor, against="median")
-    return match_level(output, target, sigma, 0.01 * float(floor), max_gain=max_gain)
+    return level_gain(output, target, sigma, 0.01 * float(floor), max_gain=max_gain)

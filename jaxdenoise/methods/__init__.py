@@ -45,7 +45,7 @@ _REGISTRY: dict[str, tuple[str, dict[str, Any]]] = {
                                        "refine_sigma": 3.0, "refine_range": 0.4, "refine_albedo": 0.03,
                                        "refine_normal": 0.1, "accumulate_samples": 4.0,
                                        "accumulate_tolerance": 0.02, "accumulate_clamp": 8.0,
-                                       "keep_background": True}),
+                                       "keep_background": True, "match_frames": 2.0, "match_tolerance": 0.0}),
     "rae-paper": ("jaxdenoise.methods.rae", {"recipe": "paper", "train_spps": (1,), "exposure": "none",
                                              "input_transform": "power", "rate_input": False}),
     "gradnet": ("jaxdenoise.methods.gradnet", {}),

@@ -28,7 +28,7 @@ all agreed (`jaxdenoise.filters.exact_mask`: a directly seen light), as `demc` d
 (on for ``rae``) where no sample found a surface (the environment seen directly). Each output frame then
 goes through ``refine_sigma``'s feature-guided cross-bilateral pass (`jaxdenoise.filters.refine`, as
 `demc`), the output clamp (``output_clamp``, off for ``rae``: isolated peaks cut), TAA over a sequence (``taa_alpha``,
-Sec. 5.4) and the level match (``match_level``): `step`.
+Sec. 5.4) and the level match (``match_level``; over a sequence its gain averaged over frames, ``match_frames``): `step`.
 
 Network (Sec. 4.1-4.2, Fig. 2): five encoder stages (widths 32, 43, 57, 76, 101) of a 3x3 conv and
 a recurrent block (`jaxdenoise.nn.RecurrentBlock`: a conv on the input, concatenation with the
@@ -63,7 +63,7 @@ from .. import color, metrics, nn, view
 from ..buffers import SAMPLE_COUNT_FIELD, Buffers
 from ..errors import JaxdenoiseError
 from ..filters import (accumulate_step, check_exact_window, check_match_settings, check_refine_settings,
-                       check_taa_settings, clamp_outliers, exact_mask, match_to_input, refine, taa_init, taa_step)
+                       check_taa_settings, clamp_outliers, exact_mask, input_gain, refine, taa_init, taa_step)
 from ..pipeline import carried_stat, carried_stats
 
 __all__ = ["Config", "needs", "required", "init", "apply", "init_state", "step", "loss", "run_sequence", "inputs",
@@ -126,6 +126,16 @@ class Config:
     match_spike: float = dataclasses.field(default=4.0, metadata={"fine_tune": True})
     match_max_gain: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})
     match_spike_by_rate: bool = dataclasses.field(default=False, metadata={"fine_tune": True})
+    # The level match over time (ours, issue 34; docs/methods/rae.md "The level match over time"): with
+    # `match_frames` > 1 the match's gain is averaged over the previous frames' gains, reprojected through the
+    # world positions and cameras (`jaxdenoise.filters.accumulate_step`, taps off the tangent plane by more
+    # than `match_tolerance` of the depth dropped, no clamp), so the noisy input's low-pass flickers less into
+    # the output; the target and the gain together span at most `match_frames` frames (a pixel whose input
+    # the accumulation averaged over n frames keeps `match_frames` / n frames of gains); 0 or 1: each frame's
+    # own gain. Carried in the state after TAA's; a single frame (`apply`) and a frame without `world_to_ndc`
+    # get their own gain. Inference only.
+    match_frames: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})
+    match_tolerance: float = dataclasses.field(default=0.02, metadata={"fine_tune": True})
     # Exact pixels (ours, issue 34; DEMC's, `jaxdenoise.methods.demc.Config.keep_exact`): with
     # `keep_exact` the output keeps the input's colour where `jaxdenoise.filters.exact_mask` says the
     # estimate is exact (a frame of >= 2 spp: `color_var` 0 in every channel; else, with `exact_window`
@@ -247,6 +257,11 @@ def _check(config: Config) -> None:
     if config.match_level and config.exposure != "frame":
         raise JaxdenoiseError(f"rae: config.match_level needs exposure 'frame' (the frame's level sets the cut's "
                               f"floor), got match_level {config.match_level} with {config.exposure!r}")
+    f, t = config.match_frames, config.match_tolerance
+    if not all(isinstance(v, (int, float)) and 0 <= v < float("inf") for v in (f, t)) or (f and not config.match_level):
+        raise JaxdenoiseError(f"rae: config.match_frames (0: off) and config.match_tolerance (a fraction of the depth) "
+                              f"must be finite numbers >= 0, and match_frames needs config.match_level > 0, got {f!r} "
+                              f"and {t!r} with match_level {config.match_level!r}")
     check_exact_window("rae: config.exact_window", config.exact_window)
     if config.taa_alpha:
         check_taa_settings("rae: config.", config.taa_alpha, config.taa_window, config.taa_tolerance)
@@ -297,7 +312,7 @@ def needs(config: Config) -> frozenset[str]:
         out.add("color_var")
     if config.keep_background:
         out.add("normal")
-    if config.taa_alpha or config.accumulate_samples:
+    if config.taa_alpha or config.accumulate_samples or config.match_frames:
         out |= {"position", "normal", "world_to_ndc"}
     if config.refine_sigma:
         out.add("normal")
@@ -521,11 +536,11 @@ def _output(y: jax.Array, albedo: Any, scale: Any, config: Config) -> jax.Array:
 
 def init_state(buffers: Buffers, config: Config) -> tuple:
     """Zero hidden states of the six recurrent blocks for frames of ``buffers``' size (a `Buffers` or a
-    dict frame), then with ``accumulate_samples`` the input's history and with ``taa_alpha`` TAA's
-    (`jaxdenoise.filters.taa_init`: none yet)."""
+    dict frame), then with ``accumulate_samples`` the input's history, with ``taa_alpha`` TAA's and with
+    ``match_frames`` the level match's gains' (`jaxdenoise.filters.taa_init`: none yet)."""
     shape = tuple(np.shape(_get(buffers, "color")))
     hidden = tuple(jnp.zeros(s, jnp.float32) for s in _state_shapes(config, shape[:-3], shape[-3], shape[-2]))
-    histories = (config.accumulate_samples, config.taa_alpha)
+    histories = (config.accumulate_samples, config.taa_alpha, _gain_history(config))
     return hidden + tuple(taa_init(shape[:-1] + (3,)) for on in histories if on)
 
 
@@ -534,11 +549,12 @@ def step(params: dict, state: tuple, buffers: Buffers, config: Config) -> tuple[
     scale = exposure_scale(buffers, config)
     n_hidden = len(config.widths) + 1
     hidden, histories = tuple(state[:n_hidden]), list(state[n_hidden:])
+    gains = histories.pop() if _gain_history(config) else None
     taa = histories.pop() if config.taa_alpha else None
     acc = histories.pop() if config.accumulate_samples else None
     c = color.radiance(_get(buffers, "color"))
     projection = _get(buffers, "world_to_ndc", optional=True)
-    target, frame = c, buffers
+    target, frame, length = c, buffers, 1.0
     if config.accumulate_samples and projection is not None:  # without its projection: the history kept
         fields = buffers.to_dict() if isinstance(buffers, Buffers) else dict(buffers)
         spp = sample_count(fields, "config.accumulate_samples")
@@ -574,9 +590,15 @@ def step(params: dict, state: tuple, buffers: Buffers, config: Config) -> tuple[
         hidden = hidden + (taa,)
     if config.match_level:
         spp = _get(buffers, "spp", optional=True) if config.match_spike_by_rate else None
-        out = match_to_input(out * scale, target * scale, config.match_level, spike=config.match_spike,
-                             floor=color.EXPOSURE_LEVEL, max_gain=config.match_max_gain or float("inf"),
-                             spp=spp) / scale
+        gain = input_gain(out * scale, target * scale, config.match_level, spike=config.match_spike,
+                          floor=color.EXPOSURE_LEVEL, max_gain=config.match_max_gain or float("inf"), spp=spp)
+        if _gain_history(config):
+            if projection is not None:  # a frame without its camera's projection: its own gain, the history kept
+                gains, gain, _ = accumulate_step(gains, gain, _get(buffers, "position"), _get(buffers, "normal"),
+                                                 projection, frames=config.match_frames / length,
+                                                 tolerance=config.match_tolerance, clamp=0.0)
+            hidden = hidden + (gains,)
+        out = out * gain
     if kept is not None and (config.match_level or config.taa_alpha or config.refine_sigma or config.output_clamp):
         out = jnp.where(kept, c, out)
     return hidden, out
@@ -585,8 +607,13 @@ def step(params: dict, state: tuple, buffers: Buffers, config: Config) -> tuple[
 def apply(params: dict, buffers: Buffers, config: Config) -> jax.Array:
     """A single frame (or a batch of independent frames): the first step from a zero state. TAA and the
     input accumulation are left out: without a history each returns the frame as it is."""
-    config = dataclasses.replace(config, taa_alpha=0.0, accumulate_samples=0.0)
+    config = dataclasses.replace(config, taa_alpha=0.0, accumulate_samples=0.0, match_frames=0.0)
     return step(params, init_state(buffers, config), buffers, config)[1]
+
+
+def _gain_history(config: Config) -> bool:
+    """Whether ``config`` carries the level match's gains from frame to frame (``match_frames`` > 1)."""
+    return bool(config.match_level and config.match_frames > 1)
 
 
 # -- loss --------------------------------------------------------------------------------------------
