@@ -212,15 +212,18 @@ def choose_match(args) -> dict:
     from jaxdenoise.train import load_validation, validate
 
     base, params = resolve("rae", args.init)
-    frames = load_validation(base, args.val_data)
+    val = [d for d in args.val_data.split(",") if d.strip()]
+    frames = [fr for d in val for fr in load_validation(base, d)]
     settings = {"off": {"match_level": 0.0}}
+    cuts = [c == "1" for c in args.output_cuts.split(",")]
     for sigma in (float(s) for s in args.sigmas.split(",")):
         for gain in (float(g) for g in args.gains.split(",")):
             spikes = [(float(k), False) for k in args.spikes.split(",")]
             spikes += [(float(k), True) for k in args.rate_spikes.split(",") if k.strip()]
-            for spike, by_rate in spikes:
-                settings[f"s{sigma:g} g{gain:g} {'r' if by_rate else 'k'}{spike:g}"] = {
-                    "match_level": sigma, "match_max_gain": gain, "match_spike": spike, "match_spike_by_rate": by_rate}
+            for (spike, by_rate), cut in ((sp, c) for sp in spikes for c in cuts):
+                settings[f"s{sigma:g} g{gain:g} {'r' if by_rate else 'k'}{spike:g}{' o' if cut else ''}"] = {
+                    "match_level": sigma, "match_max_gain": gain, "match_spike": spike, "match_spike_by_rate": by_rate,
+                    "match_output_cut": cut}
     res = {"init": args.init, "val_data": args.val_data, "relmse_tolerance": args.relmse_tolerance,
            "rate_tolerance": args.rate_tolerance, "settings": {}}
     with tempfile.TemporaryDirectory() as tmp:
@@ -233,10 +236,10 @@ def choose_match(args) -> dict:
                                                                              "ssim")}
             print(label, {k: v[k] for k in ("relmse_geomean", "per_spp")}, flush=True)
         spps = sorted({int(fr["spp"]) for fr in frames})
-        lv = measure([f"{k.replace(' ', '_')}={f}" for k, f in folders.items()], [args.val_data], spps)
+        lv = measure([f"{k.replace(' ', '_')}={f}" for k, f in folders.items()], val, spps)
     for label, r in res["settings"].items():
-        levels = lv["methods"][label.replace(" ", "_")]["levels"][args.val_data]
-        r["level"] = {s: np.median(v, 0).tolist() for s, v in levels.items()}
+        levels = lv["methods"][label.replace(" ", "_")]["levels"]
+        r["level"] = {s: np.median([x for d in val for x in levels[d][s]], 0).tolist() for s in levels[val[0]]}
         r["level_distance"] = max(abs(x - 1) for lvl in r["level"].values() for x in lvl)
     off = res["settings"]["off"]
     ok = [k for k, r in res["settings"].items()
@@ -406,6 +409,9 @@ def main() -> None:
     ap.add_argument("--rate-spikes", default="", help="match: one sample's cut factors with match_spike_by_rate "
                     "(labels rN: a frame of n spp cut at 1 + (N - 1) / sqrt(n) times its median; default none, as "
                     "the shipped choice was made)")
+    ap.add_argument("--output-cuts", default="0", help="match: whether the target is also cut against the output "
+                    "(`match_output_cut`; comma list of 0 / 1, labels ending ' o' for 1; default 0, as the shipped "
+                    "choices before 0.9.22 were made)")
     ap.add_argument("--relmse-tolerance", type=float, default=1.01,
                     help="match: the largest validation geometric mean a chosen setting may have, times off's")
     ap.add_argument("--rate-tolerance", type=float, default=1.10,

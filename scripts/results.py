@@ -328,10 +328,10 @@ bind("rae-temporal-means", rae_temporal_means, "rae_temporal.json", ["input", "o
 # issue 34: the scene library's evaluation fly-throughs, the rate-general rae against the paper's recipe
 bind("rae-rates-temporal", rae_temporal_means, "rae_rates/temporal.json",
      ["input", "oidn", "oidn+taa", "rae-paper", "rae-0.9.15", "rae-0.9.16", "rae-0.9.19", "rae-0.9.20", "rae-gain1.3",
-      "rae-0.9.21", "rae"])
+      "rae-0.9.21", "rae-frames", "rae"])
 bind("rae-rates-frames", rae_frames, "rae_rates/temporal.json",
      ["oidn", "oidn+taa", "rae-paper", "rae-0.9.15", "rae-0.9.16", "rae-0.9.19", "rae-0.9.20", "rae-gain1.3",
-      "rae-0.9.21", "rae", "rae-per-frame"])
+      "rae-0.9.21", "rae-frames", "rae", "rae-per-frame"])
 
 
 @renderer("rae-outlier-clamp")
@@ -363,6 +363,12 @@ def _rae_level_match_0921(results: Path) -> str:
     return _level_match_table(load(results, "rae_rates/match_0921/level_match.json"))
 
 
+@renderer("rae-level-match-0922")
+def _rae_level_match_0922(results: Path) -> str:
+    """The level match re-chosen on every validation fly-through with the output cut as an axis (rae_rates.py match)."""
+    return _level_match_table(load(results, "rae_rates/match_0922/level_match.json"))
+
+
 def _level_match_table(d: dict) -> str:
     """A row per setting of an ``experiments/rae_rates.py match`` choice, with its rule."""
     spps = sorted(d["settings"]["off"]["per_spp"], key=int)
@@ -370,9 +376,13 @@ def _level_match_table(d: dict) -> str:
             + [num(r["per_spp"][s], ".4g") for s in spps]
             + ["/".join(num(v, ".3f") for v in r["level"][s]) for s in spps] + [num(r["level_distance"], ".3f")]
             for k, r in sorted(d["settings"].items(), key=lambda kv: (kv[1]["config"]["match_level"],
-                                                                      kv[1]["config"].get("match_max_gain", 0)))]
+                                                                      kv[1]["config"].get("match_max_gain", 0),
+                                                                      kv[1]["config"].get("match_output_cut", False)))]
+    cut = any(r["config"].get("match_output_cut") for r in d["settings"].values())
     return (table(["setting (sigma px, gain limit)", "geometric mean", *(f"RelMSE {s} spp" for s in spps),
                    *(f"level {s} spp (R/G/B)" for s in spps), "largest distance from 1"], rows)
+            + ("\n\nLabels: sS gG kK = sigma S px, gain limit G, the target's outliers cut at K x their 3x3 median; "
+               "' o': the target also cut at K x the output's brightest neighbour (`match_output_cut`)." if cut else "")
             + f"\n\nChosen (bold): among the settings whose geometric mean is at most {d['relmse_tolerance']:g}x "
             f"off's and whose RelMSE at every rate is at most {d['rate_tolerance']:g}x off's there, the one with "
             f"the smallest largest level distance from 1; off unless that beats off's. Weights `{d['init']}`, "
@@ -1124,6 +1134,7 @@ STUDIES: dict[str, tuple[str, str]] = {
     "rae_rates/demc_levels.md": ("demc_levels", "rae_rates/demc_levels.json"),
     "rae_rates/level_term/demc_levels.md": ("demc_levels", "rae_rates/level_term/demc_levels.json"),
     "rae_rates/single_0921/demc_levels.md": ("demc_levels", "rae_rates/single_0921/demc_levels.json"),
+    "rae_rates/single_0922/demc_levels.md": ("demc_levels", "rae_rates/single_0922/demc_levels.json"),
     "level_correction/level_correction.md": ("level_correction", "level_correction/level_correction.json"),
     "level_correction/choice.md": ("level_correction", "level_correction/choice.json"),
     "level_correction_val4/choice.md": ("level_correction", "level_correction_val4/choice.json"),

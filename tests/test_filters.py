@@ -375,6 +375,25 @@ def test_match_level_puts_the_low_pass_level_at_the_target_and_keeps_the_detail(
                                np.asarray(match_to_input(image, spiky, 8.0, spike=2.0, floor=0.1, max_gain=1.5)),
                                rtol=1e-6)  # the gains the two multiply by
     np.testing.assert_allclose(image * np.asarray(level_gain(image, target, 8.0, 1e-3)), out, rtol=1e-6)
+    # output_cut: the target cut again at the factor times the output's brightest neighbour (or the floor), so a
+    # light the output drew dark brightens its surroundings less; clamp_outliers reads that neighbourhood from
+    # `reference`
+    lit = target.copy()
+    lit[23:26, 19:22] = 500.0  # a small light the image (the "output") does not have; the median cut keeps it
+    twice = clamp_outliers(clamp_outliers(lit, 2.0, 0.1, against="median"), 2.0, 0.1, reference=image)
+    np.testing.assert_allclose(np.asarray(input_gain(image, lit, 8.0, spike=2.0, floor=0.1, output_cut=True)),
+                               np.asarray(level_gain(image, twice, 8.0, 1e-3)), rtol=1e-6)
+    near = (slice(16, 33), slice(12, 29), 1)  # green: the image is right there
+    assert float(np.max(np.asarray(input_gain(image, lit, 8.0, spike=2.0, floor=0.1))[near])) > 2.0
+    assert float(np.max(np.asarray(input_gain(image, lit, 8.0, spike=2.0, floor=0.1, output_cut=True))[near])) < 1.2
+    img_ring = np.pad(image @ np.float32([0.2126, 0.7152, 0.0722]), 1)
+    ring = np.max([img_ring[1 + dy:49 + dy, 1 + dx:41 + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1)
+                   if dy or dx], axis=0)
+    lum_lit = lit @ np.float32([0.2126, 0.7152, 0.0722])
+    want = lit * (np.minimum(lum_lit, 2.0 * np.maximum(ring, 0.1)) / lum_lit)[..., None]
+    np.testing.assert_allclose(np.asarray(clamp_outliers(lit, 2.0, 0.1, reference=image)), want, rtol=1e-5)
+    with pytest.raises(FilterError, match="'reference'"):
+        clamp_outliers(lit, 2.0, 0.1, reference=image[:-1])
     assert float(np.max(np.asarray(match_level(image, clamp_outliers(spiky, 2.0, 0.1), 8.0, 1e-3)))) > 10.0
     np.testing.assert_allclose(np.asarray(clamp_outliers(spiky, 2.0, 0.1, against="median")),
                                spiky * cut[..., None], rtol=1e-6)

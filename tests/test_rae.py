@@ -363,8 +363,10 @@ def test_spike_term_charges_only_light_above_the_targets_neighbourhood():
 
 def test_level_match_setting():
     """``match_level``: the output's low-pass level is moved toward the input's within the gain limit
-    (`jaxdenoise.filters.match_to_input`), the state is the network's, f(k x) = k f(x) holds; it needs
-    exposure "frame"; on for `rae` (sigma 8, limit 3, cut 8), off for `rae-paper`."""
+    (`jaxdenoise.filters.match_to_input`, with ``match_output_cut`` its ``output_cut``), the state is the
+    network's, f(k x) = k f(x) holds; it needs exposure "frame"; on for `rae`, off for `rae-paper`."""
+    from jaxdenoise.filters import match_to_input
+
     cfg = rae.Config(widths=(4, 4, 6, 6, 8), bottleneck=8, exposure="frame")
     on = dataclasses.replace(cfg, match_level=4.0, match_max_gain=1.2)
     p, fr, off, out = _step_off_on(cfg, on)
@@ -379,6 +381,11 @@ def test_level_match_setting():
     np.testing.assert_array_equal(
         np.asarray(rae.step(p, s0, four, dataclasses.replace(on, match_spike=7.0, match_spike_by_rate=True))[1]),
         np.asarray(rae.step(p, s0, four, dataclasses.replace(on, match_spike=4.0))[1]))
+    cut = dataclasses.replace(on, match_output_cut=True)  # the target cut against the output too
+    scale = rae.exposure_scale(fr, cut)
+    want = match_to_input(np.asarray(off) * scale, color.radiance(fr.color) * scale, 4.0, spike=cut.match_spike,
+                          floor=color.EXPOSURE_LEVEL, max_gain=1.2, output_cut=True) / scale
+    np.testing.assert_allclose(np.asarray(rae.apply(p, fr, cut)), np.asarray(want), rtol=2e-5, atol=1e-6)
     with pytest.raises(ValueError, match="match_level"):
         rae.num_params(dataclasses.replace(TINY, match_level=8.0))  # TINY has exposure "none"
     with pytest.raises(ValueError, match="match_spike_by_rate"):
@@ -665,9 +672,12 @@ def test_match_frames_setting():
     for f in frames:
         s_own, own = rae.step(p, s_own, f, dataclasses.replace(acc, match_frames=0.0))
     np.testing.assert_allclose(np.asarray(out), np.asarray(own), rtol=1e-6)  # 2 / 2 frames: no gain history
-    for bad in ({"match_frames": -1.0}, {"match_frames": 4.0, "match_level": 0.0}, {"match_tolerance": np.inf}):
+    for bad in ({"match_frames": -1.0}, {"match_tolerance": np.inf}):
         with pytest.raises(ValueError, match="config.match_frames"):
             rae.num_params(dataclasses.replace(on, **bad))
+    unmatched = dataclasses.replace(on, match_level=0.0, taa_alpha=0.0)  # without the match it does nothing
+    assert len(rae.init_state(frames[0], unmatched)) == len(rae.init_state(frames[0], TINY))
+    assert "world_to_ndc" not in rae.needs(unmatched)
 
 
 def test_taa_setting():

@@ -2,7 +2,7 @@
 "Colour level at inference").
 
 ``match_level(image, target, sigma, eps, *, max_gain=inf) -> image``
-``match_to_input(output, color, sigma, *, spike, floor, max_gain=inf, spp=None) -> image``
+``match_to_input(output, color, sigma, *, spike, floor, max_gain=inf, spp=None, output_cut=False) -> image``
 ``level_gain(image, target, sigma, eps, *, max_gain=inf)``, ``input_gain(output, color, sigma, ...)``: the
 gains the two multiply by (a caller may average them over frames: `rae`'s ``match_frames``)
 ``check_match_settings(owner, sigma, spike, max_gain, by_rate)`` (a network config's settings for it)
@@ -27,6 +27,13 @@ The median, unlike the brightest neighbour (`clamp_outliers`'s default), also cu
 cluster lifts the target's low-pass and the gain brightens the network's blob further
 (docs/methods/rae.md "Colour level at inference"). ``eps`` is 1 % of ``floor`` (the level the caller's
 exposure scaling brings a frame to).
+
+With ``output_cut`` the target is cut once more, each pixel's luminance limited to the same factor times the
+larger of ``floor`` and the output's brightest luminance among its 8 neighbours (`clamp_outliers` with
+``reference=output``; ours, docs/methods/rae.md "Colour level at inference"): light the output has nowhere near
+counts at most that much. A small light a network drew dark (its pixels not kept as exact: a wide pixel
+filter mixes its edge samples) otherwise lifts the target's low-pass around it and the gain brightens its
+whole neighbourhood, up to ``max_gain``.
 
 With ``spp`` (the frame's samples per pixel: a number, or one per frame over the leading axes) the
 cut scales with the noise: ``spike`` is then a single sample's factor and a pixel of ``n`` samples is
@@ -99,19 +106,22 @@ def check_match_settings(owner: str, sigma: float, spike: float, max_gain: float
 
 
 def match_to_input(output, color, sigma: float, *, spike: float, floor: float,
-                   max_gain: float = float("inf"), spp=None) -> jax.Array:
+                   max_gain: float = float("inf"), spp=None, output_cut: bool = False) -> jax.Array:
     """`match_level` of a denoiser's ``output`` against its noisy input ``color`` (``(..., H, W, 3)``)
     with outliers cut at ``spike`` times the larger of ``floor`` and their 3 x 3 median luminance
     (with ``spp``: ``1 + (spike - 1) / sqrt(spp)`` times), ``eps`` 1 % of ``floor`` (module docstring)."""
     output = jnp.asarray(output)
     out_dtype = output.dtype if jnp.issubdtype(output.dtype, jnp.floating) else jnp.float32
-    gain = input_gain(output, color, sigma, spike=spike, floor=floor, max_gain=max_gain, spp=spp)
+    gain = input_gain(output, color, sigma, spike=spike, floor=floor, max_gain=max_gain, spp=spp,
+                      output_cut=output_cut)
     return (output.astype(gain.dtype) * gain).astype(out_dtype)
 
 
 def input_gain(output, color, sigma: float, *, spike: float, floor: float,
-               max_gain: float = float("inf"), spp=None) -> jax.Array:
-    """The gain `match_to_input` multiplies ``output`` by (`level_gain` against the outlier-cut input)."""
+               max_gain: float = float("inf"), spp=None, output_cut: bool = False) -> jax.Array:
+    """The gain `match_to_input` multiplies ``output`` by (`level_gain` against the outlier-cut input). With
+    ``output_cut`` the target is cut a second time, at the same factor times the larger of ``floor`` and the
+    output's largest luminance among the pixel's 8 neighbours (module docstring)."""
     for name, v in (("spike", spike), ("floor", floor)):
         if not is_concrete(v) or np.ndim(v) or not 0 < float(v) < np.inf:
             raise FilterError(f"argument '{name}' is {v!r}; expected a static finite number > 0")
@@ -123,4 +133,6 @@ def input_gain(output, color, sigma: float, *, spike: float, floor: float,
             raise FilterError(f"argument 'spp' is {spp!r}; expected samples per pixel >= 1")
         factor = 1.0 + (factor - 1.0) / jnp.sqrt(jnp.maximum(jnp.asarray(spp, jnp.float32), 1.0))
     target = clamp_outliers(color, factor, floor, against="median")
+    if output_cut:
+        target = clamp_outliers(target, factor, floor, reference=output)
     return level_gain(output, target, sigma, 0.01 * float(floor), max_gain=max_gain)

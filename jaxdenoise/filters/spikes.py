@@ -2,7 +2,7 @@
 
 ``remove_spikes(image, *, n_std=2.0, block_radius=1) -> image``
 
-``clamp_outliers(color, factor, floor, *, against="neighbours", radius=1) -> color`` (ours, `rae`'s input:
+``clamp_outliers(color, factor, floor, *, against="neighbours", radius=1, reference=None) -> color`` (ours, `rae`'s input:
 docs/methods/rae.md "Outliers"): each pixel's Rec. 709 luminance limited to ``factor`` times the larger
 of ``floor`` and the largest luminance among its 8 neighbours (neighbours outside the image count as 0),
 the hue kept. With ``radius`` r > 1 the neighbours are the 8 r pixels at Chebyshev distance exactly r (the
@@ -10,7 +10,8 @@ border of the (2r + 1)-pixel square around it; `rae`'s output clamp, docs/method
 clamp"): a blob narrower than 2r - 1 pixels is cut, while a line, an edge or a corner, which crosses the
 square's border, passes. With ``against="median"`` the reference is instead the median luminance of the pixel's 3 x 3
 block (border repeated), which also cuts a cluster of up to 4 outlier pixels (`match_to_input`'s
-target). ``factor`` is a static number, or one per image: an array broadcastable to the leading
+target). With ``reference`` (an image of the colour's shape) the neighbourhood is read from its luminance
+instead: `input_gain`'s ``output_cut`` limits a noisy input to a multiple of what a denoiser drew around it. ``factor`` is a static number, or one per image: an array broadcastable to the leading
 axes (`match_to_input`'s factor by sample count; a traced array is not checked). A noisy input's
 isolated spike (a firefly) far above both is cut; a light, a highlight or an edge (a
 bright neighbour) and anything below ``factor * floor`` pass unchanged (``factor`` 0: every lit pixel
@@ -61,12 +62,18 @@ def remove_spikes(image, *, n_std: float = 2.0, block_radius: int = 1) -> jax.Ar
 
 
 def clamp_outliers(color, factor: float, floor: float, *, against: str = "neighbours",
-                   radius: int = 1) -> jax.Array:
-    """``(..., H, W, 3)`` colour with isolated luminance spikes cut (module docstring)."""
+                   radius: int = 1, reference=None) -> jax.Array:
+    """``(..., H, W, 3)`` colour with isolated luminance spikes cut (module docstring); with ``reference`` (an
+    image of ``color``'s shape) the neighbourhood's luminance is read from it instead of from ``color``."""
     shape = tuple(np.shape(color))
     if len(shape) < 3 or shape[-1] != 3:
         raise FilterError(f"argument 'color' has shape {shape}; expected (..., H, W, 3)")
     as_image(jnp.reshape(color, (-1,) + shape[-2:]), "color")  # sizes and (concrete) NaN/Inf checked by name
+    if reference is not None:
+        if tuple(np.shape(reference)) != shape:
+            raise FilterError(f"argument 'reference' has shape {tuple(np.shape(reference))}; expected the colour's "
+                              f"{shape}")
+        as_image(jnp.reshape(reference, (-1,) + shape[-2:]), "reference")
     c = jnp.asarray(color)
     if not is_concrete(floor) or np.ndim(floor) or not np.isfinite(floor) or float(floor) < 1e-30:
         raise FilterError(f"argument 'floor' is {floor!r}; expected a static finite number > 0")
@@ -80,10 +87,11 @@ def clamp_outliers(color, factor: float, floor: float, *, against: str = "neighb
     lum = luminance(c)
     lead, (h, w) = lum.shape[:-2], lum.shape[-2:]
     factor = _factor(factor, lead)
+    src = lum if reference is None else luminance(jnp.asarray(reference))
     if against == "median":  # the 3 x 3 block's median, border repeated: a cluster of <= 4 pixels is cut too
-        near = median9(edge_blocks(lum[..., None], 1, axis=0))[..., 0]
+        near = median9(edge_blocks(src[..., None], 1, axis=0))[..., 0]
     else:
-        near = _ring_max(lum, int(radius))
+        near = _ring_max(src, int(radius))
     limit = factor * jnp.maximum(near, float(floor))
     cut = lum > limit  # then lum > 0: the inner where keeps the unused branch's gradient finite at lum = 0
     return c * jnp.where(cut, limit / jnp.where(cut, lum, 1.0), 1.0)[..., None]

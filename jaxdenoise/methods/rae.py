@@ -126,6 +126,10 @@ class Config:
     match_spike: float = dataclasses.field(default=4.0, metadata={"fine_tune": True})
     match_max_gain: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})
     match_spike_by_rate: bool = dataclasses.field(default=False, metadata={"fine_tune": True})
+    # With `match_output_cut` the target is cut again at the same factor times the larger of the frame's level and
+    # the output's brightest neighbour (`input_gain`'s `output_cut`): a small light the network drew dark no
+    # longer brightens its whole neighbourhood through the gain.
+    match_output_cut: bool = dataclasses.field(default=False, metadata={"fine_tune": True})
     # The level match over time (ours, issue 34; docs/methods/rae.md "The level match over time"): with
     # `match_frames` > 1 the match's gain is averaged over the previous frames' gains, reprojected through the
     # world positions and cameras (`jaxdenoise.filters.accumulate_step`, taps off the tangent plane by more
@@ -133,7 +137,7 @@ class Config:
     # the output; the target and the gain together span at most `match_frames` frames (a pixel whose input
     # the accumulation averaged over n frames keeps `match_frames` / n frames of gains); 0 or 1: each frame's
     # own gain. Carried in the state after TAA's; a single frame (`apply`) and a frame without `world_to_ndc`
-    # get their own gain. Inference only.
+    # get their own gain; without the match (`match_level` 0) it does nothing. Inference only.
     match_frames: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})
     match_tolerance: float = dataclasses.field(default=0.02, metadata={"fine_tune": True})
     # Exact pixels (ours, issue 34; DEMC's, `jaxdenoise.methods.demc.Config.keep_exact`): with
@@ -258,10 +262,9 @@ def _check(config: Config) -> None:
         raise JaxdenoiseError(f"rae: config.match_level needs exposure 'frame' (the frame's level sets the cut's "
                               f"floor), got match_level {config.match_level} with {config.exposure!r}")
     f, t = config.match_frames, config.match_tolerance
-    if not all(isinstance(v, (int, float)) and 0 <= v < float("inf") for v in (f, t)) or (f and not config.match_level):
+    if not all(isinstance(v, (int, float)) and 0 <= v < float("inf") for v in (f, t)):
         raise JaxdenoiseError(f"rae: config.match_frames (0: off) and config.match_tolerance (a fraction of the depth) "
-                              f"must be finite numbers >= 0, and match_frames needs config.match_level > 0, got {f!r} "
-                              f"and {t!r} with match_level {config.match_level!r}")
+                              f"must be finite numbers >= 0, got {f!r} and {t!r}")
     check_exact_window("rae: config.exact_window", config.exact_window)
     if config.taa_alpha:
         check_taa_settings("rae: config.", config.taa_alpha, config.taa_window, config.taa_tolerance)
@@ -312,7 +315,7 @@ def needs(config: Config) -> frozenset[str]:
         out.add("color_var")
     if config.keep_background:
         out.add("normal")
-    if config.taa_alpha or config.accumulate_samples or config.match_frames:
+    if config.taa_alpha or config.accumulate_samples or _gain_history(config):
         out |= {"position", "normal", "world_to_ndc"}
     if config.refine_sigma:
         out.add("normal")
@@ -591,7 +594,8 @@ def step(params: dict, state: tuple, buffers: Buffers, config: Config) -> tuple[
     if config.match_level:
         spp = _get(buffers, "spp", optional=True) if config.match_spike_by_rate else None
         gain = input_gain(out * scale, target * scale, config.match_level, spike=config.match_spike,
-                          floor=color.EXPOSURE_LEVEL, max_gain=config.match_max_gain or float("inf"), spp=spp)
+                          floor=color.EXPOSURE_LEVEL, max_gain=config.match_max_gain or float("inf"), spp=spp,
+                          output_cut=config.match_output_cut)
         if _gain_history(config):
             if projection is not None:  # a frame without its camera's projection: its own gain, the history kept
                 gains, gain, _ = accumulate_step(gains, gain, _get(buffers, "position"), _get(buffers, "normal"),
