@@ -100,8 +100,8 @@ same rule as ``taa`` (the documented choice used ``--level-slack 0.005``, fixed 
 ``--tolerances``, scored on the same fly-throughs and by the same rule as ``taa`` (the documented choice
 used ``--level-slack 0.005``, fixed before it ran). Written to ``OUT/match-frames.json``:
 
-    python experiments/rae_rates.py match-frames --init jaxdenoise/weights/rae --level-slack 0.005 \
-        --out docs/results/rae_rates/match_frames
+    python experiments/rae_rates.py match-frames --init jaxdenoise/weights/rae --match-frames 2,4,8,16 \
+        --level-slack 0.005 --out docs/results/rae_rates/match_frames
 
 Every training run's record goes to ``OUT/summary.json``.
 """
@@ -345,7 +345,8 @@ def _temporal_choice(args, base, params, seqs, settings: dict[str, dict], res: d
 
 
 def choose_temporal(args) -> dict:
-    """The ``taa``, ``accumulate``, ``background`` and ``match-frames`` subcommands (module docstring): RelMSE, temporal error
+    """The ``taa``, ``accumulate``, ``background`` and ``match-frames`` subcommands (module docstring): RelMSE,
+    temporal error
     and level of each setting of the weights in ``--init`` on the validation fly-throughs, then TAA's rule."""
     from jaxdenoise.api import resolve
 
@@ -425,11 +426,12 @@ def main() -> None:
                     "tolerances (0: no test)")
     ap.add_argument("--samples", default="2,4,8,16", help="accumulate: samples per pixel to accumulate up to (a "
                     "frame of n spp keeps at most S / n frames)")
-    ap.add_argument("--match-frames", default="2,4,8", help="match-frames: the longest histories of the level "
+    ap.add_argument("--match-frames", default="2,4,8,16", help="match-frames: the longest histories of the level "
                     "match's gain, in frames")
     ap.add_argument("--clamps", default="2,4,8", help="accumulate: the history's clamp factors (0: none)")
     ap.add_argument("--level-slack", type=float, default=0.02,
-                    help="taa, accumulate, background, match-frames: how much further from 1 than off's a chosen setting's "
+                    help="taa, accumulate, background, match-frames: how much further from 1 than off's a chosen "
+                    "setting's "
                     "level may be (every rate, channel)")
     ap.add_argument("--taa-data", default="data/rae_library_val2",
                     help="taa: more validation fly-throughs scored beside --val-data (comma list; '' for none)")

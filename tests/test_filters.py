@@ -9,7 +9,8 @@ import pytest
 from jax.test_util import check_grads as _check_grads
 
 from jaxdenoise.filters import (DELTA, ZETA, FilterError, bilateral, clamp_outliers, cross_bilateral, cross_nlm,
-                                drop_constant_features, gaussian, input_gain, level_gain, match_level, match_to_input, prefilter_features,
+                                drop_constant_features, gaussian, input_gain, level_gain, match_level, match_to_input,
+                                prefilter_features,
                                 remove_spikes, spatiotemporal_cross_bilateral)
 
 H, W = 8, 8

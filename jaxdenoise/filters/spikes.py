@@ -2,8 +2,8 @@
 
 ``remove_spikes(image, *, n_std=2.0, block_radius=1) -> image``
 
-``clamp_outliers(color, factor, floor, *, against="neighbours", radius=1, reference=None) -> color`` (ours, `rae`'s input:
-docs/methods/rae.md "Outliers"): each pixel's Rec. 709 luminance limited to ``factor`` times the larger
+``clamp_outliers(color, factor, floor, *, against="neighbours", radius=1, reference=None) -> color`` (ours,
+`rae`'s input: docs/methods/rae.md "Outliers"): each pixel's Rec. 709 luminance limited to ``factor`` times the larger
 of ``floor`` and the largest luminance among its 8 neighbours (neighbours outside the image count as 0),
 the hue kept. With ``radius`` r > 1 the neighbours are the 8 r pixels at Chebyshev distance exactly r (the
 border of the (2r + 1)-pixel square around it; `rae`'s output clamp, docs/methods/rae.md "Output
@@ -11,7 +11,8 @@ clamp"): a blob narrower than 2r - 1 pixels is cut, while a line, an edge or a c
 square's border, passes. With ``against="median"`` the reference is instead the median luminance of the pixel's 3 x 3
 block (border repeated), which also cuts a cluster of up to 4 outlier pixels (`match_to_input`'s
 target). With ``reference`` (an image of the colour's shape) the neighbourhood is read from its luminance
-instead: `input_gain`'s ``output_cut`` limits a noisy input to a multiple of what a denoiser drew around it. ``factor`` is a static number, or one per image: an array broadcastable to the leading
+instead: `input_gain`'s ``output_cut`` limits a noisy input to a multiple of what a denoiser drew around it.
+``factor`` is a static number, or one per image: an array broadcastable to the leading
 axes (`match_to_input`'s factor by sample count; a traced array is not checked). A noisy input's
 isolated spike (a firefly) far above both is cut; a light, a highlight or an edge (a
 bright neighbour) and anything below ``factor * floor`` pass unchanged (``factor`` 0: every lit pixel

@@ -28,7 +28,8 @@ all agreed (`jaxdenoise.filters.exact_mask`: a directly seen light), as `demc` d
 (on for ``rae``) where no sample found a surface (the environment seen directly). Each output frame then
 goes through ``refine_sigma``'s feature-guided cross-bilateral pass (`jaxdenoise.filters.refine`, as
 `demc`), the output clamp (``output_clamp``, off for ``rae``: isolated peaks cut), TAA over a sequence (``taa_alpha``,
-Sec. 5.4) and the level match (``match_level``; over a sequence its gain averaged over frames, ``match_frames``): `step`.
+Sec. 5.4) and the level match (``match_level``; over a sequence its gain averaged over frames, ``match_frames``):
+`step`.
 
 Network (Sec. 4.1-4.2, Fig. 2): five encoder stages (widths 32, 43, 57, 76, 101) of a 3x3 conv and
 a recurrent block (`jaxdenoise.nn.RecurrentBlock`: a conv on the input, concatenation with the

@@ -510,10 +510,12 @@ FILTERS: dict[str, FilterSpec] = {
 # Public names of jaxdenoise.filters that are not image filters (helpers and the error type; `exact_mask`
 # returns a boolean mask by exact comparisons: nothing to overflow, no parameter, no gradient; `taa_init`,
 # `reproject`, `TaaState`, `hdr_weight` and `check_taa_settings` are the parts of `taa_step`, which has its entry;
-# `check_refine_settings` refuses a config's settings for `refine`).
+# `level_gain` and `input_gain` are the gains `match_level` and `match_to_input` multiply by, exercised by their
+# entries in every case; `check_refine_settings` refuses a config's settings for `refine`).
 FILTER_HELPERS = frozenset({"FilterError", "gaussian_kernel_1d", "drop_constant_features", "DELTA", "ZETA",
                             "check_match_settings", "check_exact_window", "exact_mask", "check_taa_settings",
-                            "taa_init", "reproject", "TaaState", "hdr_weight", "check_refine_settings"})
+                            "taa_init", "reproject", "TaaState", "hdr_weight", "check_refine_settings",
+                            "level_gain", "input_gain"})
 
 
 def public_filters() -> list[str]:
