@@ -64,9 +64,14 @@ from .spikes import clamp_outliers
 def match_level(image, target, sigma: float, eps: float, *, max_gain: float = float("inf")) -> jax.Array:
     """``image`` times ``(G(target) + eps) / (G(image) + eps)`` per channel, within ``[1 / max_gain,
     max_gain]`` (module docstring)."""
+    return _times(image, level_gain(image, target, sigma, eps, max_gain=max_gain))
+
+
+def _times(image, gain: jax.Array) -> jax.Array:
+    """``image`` times ``gain`` computed in the gain's precision, returned in the image's floating type
+    (float32 for an integer image)."""
     image = jnp.asarray(image)
     out_dtype = image.dtype if jnp.issubdtype(image.dtype, jnp.floating) else jnp.float32
-    gain = level_gain(image, target, sigma, eps, max_gain=max_gain)
     return (image.astype(gain.dtype) * gain).astype(out_dtype)
 
 
@@ -110,11 +115,8 @@ def match_to_input(output, color, sigma: float, *, spike: float, floor: float,
     """`match_level` of a denoiser's ``output`` against its noisy input ``color`` (``(..., H, W, 3)``)
     with outliers cut at ``spike`` times the larger of ``floor`` and their 3 x 3 median luminance
     (with ``spp``: ``1 + (spike - 1) / sqrt(spp)`` times), ``eps`` 1 % of ``floor`` (module docstring)."""
-    output = jnp.asarray(output)
-    out_dtype = output.dtype if jnp.issubdtype(output.dtype, jnp.floating) else jnp.float32
-    gain = input_gain(output, color, sigma, spike=spike, floor=floor, max_gain=max_gain, spp=spp,
-                      output_cut=output_cut)
-    return (output.astype(gain.dtype) * gain).astype(out_dtype)
+    return _times(output, input_gain(output, color, sigma, spike=spike, floor=floor, max_gain=max_gain, spp=spp,
+                                     output_cut=output_cut))
 
 
 def input_gain(output, color, sigma: float, *, spike: float, floor: float,
