@@ -103,6 +103,21 @@ used ``--level-slack 0.005``, fixed before it ran). Written to ``OUT/match-frame
     python experiments/rae_rates.py match-frames --init jaxdenoise/weights/rae --match-frames 2,4,8,16 \
         --level-slack 0.005 --out docs/results/rae_rates/match_frames
 
+``single-sample`` chooses whether and where the outlier clamp drops its floor on pixels that rest on about one
+sample (`jaxdenoise.methods.rae.Config.outlier_rel_sd`; docs/methods/rae.md "Single-sample spikes") for the
+weights and settings in ``--init``, no training: off and each relative standard error of ``--rel-sds``, scored
+on the validation fly-throughs (``--val-data`` and ``--taa-data``, state carried, as ``taa``) and on the
+validation single frames of ``--exact-data`` at 1 / 4 / 16 / 64 spp (`demc_levels.measure`, surface pixels).
+The rule, fixed before it first ran: among the settings whose fly-through RelMSE at every rate and whose
+single frames' geometric-mean RelMSE are at most ``--relmse-tolerance`` times off's, and whose levels (the
+fly-throughs' per rate, the single frames' per rate pooled over folders; every channel) are at most
+``--level-slack`` further from 1 than off's, the one with the fewest halo pixels (the single frames' surface
+halo pixels plus the fly-throughs'), ties broken by the fly-through score; off unless that has fewer than
+off's. Written to ``OUT/single_sample.json``:
+
+    python experiments/rae_rates.py single-sample --init jaxdenoise/weights/rae --level-slack 0.005 \
+        --out docs/results/rae_rates/single_sample
+
 Every training run's record goes to ``OUT/summary.json``.
 """
 from __future__ import annotations
@@ -374,10 +389,61 @@ def choose_temporal(args) -> dict:
     return _temporal_choice(args, base, params, seqs, settings, res)
 
 
+def choose_single_sample(args) -> dict:
+    """The ``single-sample`` subcommand (module docstring): the fly-throughs scored as ``taa`` does, the single
+    frames by `demc_levels.measure`, then the rule."""
+    import tempfile
+
+    from demc_levels import measure
+    from jaxdenoise.api import resolve
+
+    base, params = resolve("rae", args.init)
+    folders, seqs = _validation_sequences(args, base)
+    settings = {"off": {"outlier_rel_sd": 0.0}}
+    settings |= {f"r{x:g}": {"outlier_rel_sd": x} for x in (float(v) for v in args.rel_sds.split(","))}
+    res = _temporal_choice(args, base, params, seqs, settings, {"init": args.init, "folders": folders,
+                                                                  "sequences": len(seqs),
+                                                                  "level_slack": args.level_slack,
+                                                                  "relmse_tolerance": args.relmse_tolerance})
+    del res["chosen"]  # TAA's rule; this subcommand's is below
+    single = [d for d in args.exact_data.split(",") if d.strip()]
+    with tempfile.TemporaryDirectory() as tmp:
+        saved = {k: checkpoint.save(Path(tmp) / k, params, base.with_config(**over).config, {"method": "rae"})
+                 for k, over in settings.items()}
+        lv = measure([f"{k}={f}" for k, f in saved.items()], single, [1, 4, 16, 64])
+    res["single_folders"] = single
+    for label, r in res["settings"].items():
+        m = lv["methods"][label]
+        rates = sorted({s for d in single for s in m["levels"][d]}, key=int)
+        r["single"] = {
+            "relmse_geomean": float(np.exp(np.mean([np.log(x[0]) for d in single for s in rates
+                                                    for x in m["scores"][d].get(s, [])]))),
+            "level": {s: np.median([x for d in single for x in m["levels"][d].get(s, [])], 0).tolist() for s in rates},
+            "halo": {s: int(sum(sum(m["halo_surface"][d].get(s, [])) for d in single)) for s in rates}}
+        r["halo_total"] = sum(r["single"]["halo"].values()) + sum(row["halo"] for row in r["rows"])
+        print(label, r["single"], "halo", r["halo_total"], flush=True)
+    off = res["settings"]["off"]
+
+    def further(a: dict, b: dict) -> bool:  # a level of ``a`` more than the slack further from 1 than ``b``'s
+        return any(abs(x - 1) > abs(y - 1) + args.level_slack for s in b for x, y in zip(a[s], b[s]))
+
+    ok = [k for k, r in res["settings"].items()
+          if all(r["per_spp"][s]["relmse"] <= args.relmse_tolerance * off["per_spp"][s]["relmse"]
+                 for s in off["per_spp"])
+          and r["single"]["relmse_geomean"] <= args.relmse_tolerance * off["single"]["relmse_geomean"]
+          and not further({s: v["level"] for s, v in r["per_spp"].items()},
+                          {s: v["level"] for s, v in off["per_spp"].items()})
+          and not further(r["single"]["level"], off["single"]["level"])]
+    best = min(ok, key=lambda k: (res["settings"][k]["halo_total"], res["settings"][k]["score"]))
+    res["chosen"] = best if res["settings"][best]["halo_total"] < off["halo_total"] else "off"
+    res["command"] = " ".join(["python", "experiments/rae_rates.py", *sys.argv[1:]])
+    return res
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("what", choices=("arms", "continue", "level", "clamp", "match", "exact", "taa", "accumulate",
-                                     "background", "match-frames"))
+                                     "background", "match-frames", "single-sample"))
     ap.add_argument("--data", default="runs/rae_rates_data")
     ap.add_argument("--val-data", default="data/rae_library_val")
     ap.add_argument("--out", required=True)
@@ -414,12 +480,13 @@ def main() -> None:
                     "(`match_output_cut`; comma list of 0 / 1, labels ending ' o' for 1; default 0, as the shipped "
                     "choices before 0.9.22 were made)")
     ap.add_argument("--relmse-tolerance", type=float, default=1.01,
-                    help="match: the largest validation geometric mean a chosen setting may have, times off's")
+                    help="match, single-sample: the largest validation RelMSE (match: geometric mean; single-sample: "
+                    "per rate and the single frames' geometric mean) a chosen setting may have, times off's")
     ap.add_argument("--rate-tolerance", type=float, default=1.10,
                     help="match: the largest validation RelMSE at any one rate a chosen setting may have, times off's")
     ap.add_argument("--windows", default="3,5,7", help="exact: the window rule's squares to score")
     ap.add_argument("--exact-data", default="data/procedural_val,data/library_val,data/library_val2",
-                    help="exact: validation folders of single frames scored beside the fly-throughs")
+                    help="exact, single-sample: validation folders of single frames scored beside the fly-throughs")
     ap.add_argument("--alphas", default="0.5,0.25,0.1", help="taa: blend weights (1 / the longest history)")
     ap.add_argument("--taa-windows", default="0,3", help="taa: clamp neighbourhoods (0: no clamp)")
     ap.add_argument("--tolerances", default="0,0.02,0.1", help="taa, accumulate, match-frames: tangent-plane "
@@ -428,11 +495,12 @@ def main() -> None:
                     "frame of n spp keeps at most S / n frames)")
     ap.add_argument("--match-frames", default="2,4,8,16", help="match-frames: the longest histories of the level "
                     "match's gain, in frames")
+    ap.add_argument("--rel-sds", default="0.6,0.8,1", help="single-sample: relative standard errors at and above "
+                    "which a pixel's outlier clamp drops its floor (`outlier_rel_sd`)")
     ap.add_argument("--clamps", default="2,4,8", help="accumulate: the history's clamp factors (0: none)")
     ap.add_argument("--level-slack", type=float, default=0.02,
-                    help="taa, accumulate, background, match-frames: how much further from 1 than off's a chosen "
-                    "setting's "
-                    "level may be (every rate, channel)")
+                    help="taa, accumulate, background, match-frames, single-sample: how much further from 1 than "
+                    "off's a chosen setting's level may be (every rate, channel)")
     ap.add_argument("--taa-data", default="data/rae_library_val2",
                     help="taa: more validation fly-throughs scored beside --val-data (comma list; '' for none)")
     args = ap.parse_args()
@@ -440,6 +508,11 @@ def main() -> None:
     if args.what in ("taa", "accumulate", "background", "match-frames"):
         res = choose_temporal(args)
         write_json(out / f"{args.what}.json", res)
+        print("chosen:", res["chosen"])
+        return
+    if args.what == "single-sample":
+        res = choose_single_sample(args)
+        write_json(out / "single_sample.json", res)
         print("chosen:", res["chosen"])
         return
     if args.what == "exact":

@@ -466,6 +466,37 @@ def _rae_match_frames(results: Path) -> str:
         "tangent-plane tolerance T (a fraction of the depth; 0: no geometric test)."))
 
 
+@renderer("rae-single-sample")
+def _rae_single_sample(results: Path) -> str:
+    """The outlier clamp without its floor on single-sample pixels, measured on the validation fly-throughs and
+    single frames (rae_rates.py single-sample)."""
+    d = load(results, "rae_rates/single_sample/single_sample.json")
+    spps = sorted(d["settings"]["off"]["per_spp"], key=int)
+    singles = sorted(d["settings"]["off"]["single"]["level"], key=int)
+    rows = [[("**" + k + "**" if k == d["chosen"] else k), num(r["score"], ".4g")]
+            + [f"{num(r['per_spp'][x]['relmse'], '.4g')} / " + "/".join(num(v, ".3f") for v in r["per_spp"][x]["level"])
+               for x in spps]
+            + [str(sum(row["halo"] for row in r["rows"])), num(r["single"]["relmse_geomean"], ".4g")]
+            + ["/".join(num(v, ".3f") for v in r["single"]["level"][x]) + f" ({r['single']['halo'][x]})"
+               for x in singles] + [str(r["halo_total"])]
+            for k, r in d["settings"].items()]
+    return (table(["setting", "fly-through score", *(f"fly-throughs {x} spp: RelMSE / level R/G/B" for x in spps),
+                   "fly-through halo px", "single frames: geometric mean",
+                   *(f"single {x} spp: level R/G/B (halo px)" for x in singles), "halo px in all"], rows,
+                  "lr" + "r" * (len(spps) + len(singles) + 4))
+            + "\n\nSettings: off, or rX = `outlier_rel_sd` X (a pixel of >= 2 spp whose relative standard error is at "
+            "least X is cut at the outlier clamp's 8x its brightest neighbour, without the frame-level floor). "
+            "Fly-throughs: as in the temporal choices on this page (means over the validation fly-throughs, state carried; the "
+            "level of their frames after the first over every lit pixel; the score the geometric mean of sqrt(RelMSE x "
+            "temporal error)). Single frames: the geometric mean of every frame's RelMSE, and per rate the surface "
+            "level pooled over the folders (median over frames) and the surface halo pixels "
+            f"(`{'`, `'.join(d['single_folders'])}`). Chosen (bold): among the settings whose fly-through RelMSE at "
+            f"every rate and single-frame geometric mean are at most {d['relmse_tolerance']:g}x off's and whose levels "
+            f"are at most {d['level_slack']:g} further from 1 than off's, the fewest halo pixels in all (ties: the "
+            f"score); off unless that has fewer than off's. {d['sequences']} sequences from "
+            f"{', '.join(f'`{x}`' for x in d['folders'])}; weights `{d['init']}`. Command: `{d['command']}`.")
+
+
 @renderer("rae-match-frames-first")
 def _rae_match_frames_first(results: Path) -> str:
     """The first grid of the level match over time: F frames of gains at every rate (replaced)."""

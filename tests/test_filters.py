@@ -293,6 +293,16 @@ def test_clamp_outliers_cuts_isolated_spikes_only():
     batch = np.stack([c, c[::-1]])[None]  # (1, 2, 8, 9, 3)
     np.testing.assert_allclose(np.asarray(clamp_outliers(batch, 4.0, 0.2))[0, 1],
                                np.asarray(clamp_outliers(c[::-1], 4.0, 0.2)))
+    alone = np.zeros((8, 9), bool)
+    alone[0, 8] = alone[3, 3] = True  # no floor there: the pixel below 4x the floor is cut to 4x its neighbours
+    cut = np.asarray(clamp_outliers(c, 4.0, 0.2, unfloored=alone))
+    np.testing.assert_allclose(lum(cut[0, 8]), 0.4, rtol=1e-5)
+    keep[0, 8] = False
+    np.testing.assert_array_equal(cut[keep], c[keep])  # [3, 3] is no spike: unchanged
+    np.testing.assert_array_equal(cut[2, 2], out[2, 2])
+    for mask, match in ((alone[:, :4], "'unfloored' has shape"), (alone.astype(np.int32), "'unfloored' has dtype")):
+        with pytest.raises(FilterError, match=match):
+            clamp_outliers(c, 4.0, 0.2, unfloored=mask)
     per_image = np.asarray(clamp_outliers(np.stack([c, c[::-1]]), np.float32([4.0, 1e4]), 0.2))  # a factor per image
     np.testing.assert_array_equal(per_image[0], out)
     np.testing.assert_array_equal(per_image[1], c[::-1])

@@ -300,6 +300,46 @@ def test_outlier_clamp_in_the_input():
     assert get("rae").config.outlier_clamp == 8.0 and get("rae-paper").config.outlier_clamp == 0.0
 
 
+def test_single_sample_setting():
+    """``outlier_rel_sd``: `single_sample` marks the pixels of a >= 2-spp frame whose relative standard error
+    (the channel mean of sqrt(``color_var``) over the colour's channel mean) reaches it; those lose the outlier
+    clamp's frame-level floor (a dark spike carried by one sample, below 8x the level, is cut to 8x its
+    brightest neighbour), nothing else changes; inert at 1 spp, without a variance, or at 0; it needs the
+    clamp."""
+    from jaxdenoise.filters import clamp_outliers
+
+    cfg = rae.Config(widths=(4, 4, 6, 6, 8), bottleneck=8, exposure="frame", outlier_clamp=8.0)
+    on = dataclasses.replace(cfg, outlier_rel_sd=0.8)
+    p = rae.init(jax.random.PRNGKey(1), cfg)
+    fr = _frame(16, 12, seed=3)
+    c = np.full((16, 12, 3), 0.01, np.float32)
+    c[:, 6:] = 1.0  # a lit half sets the frame's level; the dark half holds the spike
+    c[5, 2] = 0.5  # 50x its neighbours, below 8x the frame's level
+    var = (0.2 * c) ** 2  # relative standard error 0.2 ...
+    var[5, 2] = c[5, 2] ** 2  # ... and 1 at the spike: one non-zero sample among n
+    fr = fr.replace(color=c, color_var=var, spp=4)
+    mask = np.asarray(rae.single_sample(fr, 0.8))
+    assert mask.shape == (16, 12) and mask.sum() == 1 and mask[5, 2]
+    assert not np.asarray(rae.single_sample(fr.replace(spp=1), 0.8)).any()
+    assert rae.single_sample(fr.replace(color_var=None), 0.8) is None
+    scale = rae.exposure_scale(fr, cfg)
+    x_off, x_on = np.asarray(rae.inputs(fr, cfg)), np.asarray(rae.inputs(fr, on))
+    diff = np.any(x_off != x_on, axis=-1)
+    assert diff.sum() == 1 and diff[5, 2]
+    want = clamp_outliers(np.asarray(c * scale), 8.0, color.EXPOSURE_LEVEL, unfloored=mask)
+    np.testing.assert_allclose(np.asarray(rae._cut_outliers(c * scale, on, fr)), np.asarray(want), rtol=1e-6)
+    lum = lambda v: 0.2126 * v[..., 0] + 0.7152 * v[..., 1] + 0.0722 * v[..., 2]
+    np.testing.assert_allclose(lum(np.asarray(want)[5, 2]), 8 * 0.01 * float(np.ravel(scale)[0]), rtol=1e-5)
+    assert not np.allclose(np.asarray(rae.apply(p, fr, cfg)), np.asarray(rae.apply(p, fr, on)))
+    np.testing.assert_array_equal(np.asarray(rae.apply(p, fr.replace(spp=1), cfg)),
+                                  np.asarray(rae.apply(p, fr.replace(spp=1), on)))
+    np.testing.assert_array_equal(np.asarray(rae.inputs(fr, dataclasses.replace(on, outlier_rel_sd=0.0))), x_off)
+    for bad in (dataclasses.replace(on, outlier_clamp=0.0), dataclasses.replace(on, outlier_rel_sd=-1.0),
+                dataclasses.replace(on, outlier_rel_sd=float("nan"))):
+        with pytest.raises(ValueError, match="outlier_rel_sd"):
+            rae.num_params(bad)
+
+
 def _step_off_on(cfg, on):
     """One first step of a 16x12 frame with ``cfg`` and with ``on`` (inference settings only): the
     params, the frame and both outputs; the two states must be the network's, bit for bit."""

@@ -2,7 +2,8 @@
 
 ``remove_spikes(image, *, n_std=2.0, block_radius=1) -> image``
 
-``clamp_outliers(color, factor, floor, *, against="neighbours", radius=1, reference=None) -> color`` (ours,
+``clamp_outliers(color, factor, floor, *, against="neighbours", radius=1, reference=None, unfloored=None) -> color``
+(ours,
 `rae`'s input: docs/methods/rae.md "Outliers"): each pixel's Rec. 709 luminance limited to ``factor`` times the larger
 of ``floor`` and the largest luminance among its 8 neighbours (neighbours outside the image count as 0),
 the hue kept. With ``radius`` r > 1 the neighbours are the 8 r pixels at Chebyshev distance exactly r (the
@@ -12,6 +13,10 @@ square's border, passes. With ``against="median"`` the reference is instead the 
 block (border repeated), which also cuts a cluster of up to 4 outlier pixels (`match_to_input`'s
 target). With ``reference`` (an image of the colour's shape) the neighbourhood is read from its luminance
 instead: `input_gain`'s ``output_cut`` limits a noisy input to a multiple of what a denoiser drew around it.
+With ``unfloored`` (a boolean ``(..., H, W)`` mask, broadcastable to the image's) the marked pixels are limited
+by their neighbourhood alone, ``floor`` left out (`rae`'s ``outlier_rel_sd``: a pixel whose own variance says it
+rests on about one sample is cut below the floor too; a marked pixel whose neighbours are all black is cut to
+black).
 ``factor`` is a static number, or one per image: an array broadcastable to the leading
 axes (`match_to_input`'s factor by sample count; a traced array is not checked). A noisy input's
 isolated spike (a firefly) far above both is cut; a light, a highlight or an edge (a
@@ -63,7 +68,7 @@ def remove_spikes(image, *, n_std: float = 2.0, block_radius: int = 1) -> jax.Ar
 
 
 def clamp_outliers(color, factor: float, floor: float, *, against: str = "neighbours",
-                   radius: int = 1, reference=None) -> jax.Array:
+                   radius: int = 1, reference=None, unfloored=None) -> jax.Array:
     """``(..., H, W, 3)`` colour with isolated luminance spikes cut (module docstring); with ``reference`` (an
     image of ``color``'s shape) the neighbourhood's luminance is read from it instead of from ``color``."""
     shape = tuple(np.shape(color))
@@ -93,7 +98,17 @@ def clamp_outliers(color, factor: float, floor: float, *, against: str = "neighb
         near = median9(edge_blocks(src[..., None], 1, axis=0))[..., 0]
     else:
         near = _ring_max(src, int(radius))
-    limit = factor * jnp.maximum(near, float(floor))
+    limit = jnp.maximum(near, float(floor))
+    if unfloored is not None:
+        try:
+            np.broadcast_shapes(tuple(np.shape(unfloored)), lum.shape)
+        except ValueError:
+            raise FilterError(f"argument 'unfloored' has shape {tuple(np.shape(unfloored))}; expected a mask "
+                              f"broadcastable to the image's (..., H, W) = {lum.shape}") from None
+        if jnp.asarray(unfloored).dtype != bool:
+            raise FilterError(f"argument 'unfloored' has dtype {jnp.asarray(unfloored).dtype}; expected bool")
+        limit = jnp.where(unfloored, near, limit)
+    limit = factor * limit
     cut = lum > limit  # then lum > 0: the inner where keeps the unused branch's gradient finite at lum = 0
     return c * jnp.where(cut, limit / jnp.where(cut, lum, 1.0), 1.0)[..., None]
 

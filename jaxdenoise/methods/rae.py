@@ -115,6 +115,13 @@ class Config:
     # stands in for the paper's path-space regularization (Sec. 3.1), which removed "sparse
     # high-intensity outliers" from its inputs at a small bias; our renders have them.
     outlier_clamp: float = dataclasses.field(default=0.0, metadata={"fine_tune": True})
+    # Single-sample spikes (ours, issue 34's halo check; docs/methods/rae.md "Single-sample spikes"): with
+    # `outlier_clamp` on and `outlier_rel_sd` > 0, a pixel of a frame of >= 2 spp whose relative standard error
+    # (the channel mean of sqrt(color_var) over the channel mean of the colour; one non-zero sample among n
+    # gives exactly 1) is at least this value is limited to `outlier_clamp` times its brightest neighbour
+    # alone, without the frame-level floor; 0 = off. Inference only (training crops carry no variance);
+    # inert on 1-spp frames, which have none.
+    outlier_rel_sd: float = 0.0
     # The colour level at inference (ours, issue 34; docs/methods/rae.md "Colour level at inference";
     # DEMC's, `jaxdenoise.methods.demc.Config.match_level`): with `match_level` > 0 each output frame's
     # level, low-passed by a Gaussian of that many pixels, is put at its noisy input's
@@ -257,6 +264,11 @@ def _check(config: Config) -> None:
     if not config.outlier_clamp >= 0 or (config.outlier_clamp and config.exposure != "frame"):
         raise JaxdenoiseError(f"rae: config.outlier_clamp must be >= 0 (0: off) and needs exposure 'frame' (the "
                               f"frame's level sets its floor), got {config.outlier_clamp!r} with {config.exposure!r}")
+    if not (np.isfinite(config.outlier_rel_sd) and config.outlier_rel_sd >= 0) or (config.outlier_rel_sd
+                                                                                   and not config.outlier_clamp):
+        raise JaxdenoiseError(f"rae: config.outlier_rel_sd must be a finite number >= 0 (0: off) and needs "
+                              f"outlier_clamp (whose floor it drops), got {config.outlier_rel_sd!r} with "
+                              f"outlier_clamp {config.outlier_clamp!r}")
     check_match_settings("rae: config.", config.match_level, config.match_spike, config.match_max_gain,
                          config.match_spike_by_rate)
     if config.match_level and config.exposure != "frame":
@@ -465,10 +477,28 @@ def rate_channel(frame: Any, shape: tuple[int, ...]) -> jax.Array:
     return jnp.broadcast_to(jnp.log2(jnp.maximum(sample_count(frame), 1.0)) / RATE_SCALE, shape)
 
 
-def _cut_outliers(c: Any, config: Config) -> Any:
+def _cut_outliers(c: Any, config: Config, frame: Any = None) -> Any:
     """The exposure-scaled colour ``c`` with ``config.outlier_clamp``'s isolated spikes cut
-    (`jaxdenoise.filters.clamp_outliers`, floor the exposure level); ``c`` when off."""
-    return clamp_outliers(c, config.outlier_clamp, color.EXPOSURE_LEVEL) if config.outlier_clamp else c
+    (`jaxdenoise.filters.clamp_outliers`, floor the exposure level; with ``outlier_rel_sd`` and ``frame``, the
+    frame ``c`` was read from, no floor on its `single_sample` pixels); ``c`` when off."""
+    if not config.outlier_clamp:
+        return c
+    alone = single_sample(frame, config.outlier_rel_sd) if frame is not None and config.outlier_rel_sd else None
+    return clamp_outliers(c, config.outlier_clamp, color.EXPOSURE_LEVEL, unfloored=alone)
+
+
+def single_sample(frame: Any, rel_sd: float) -> jax.Array | None:
+    """The pixels of a frame (a `Buffers` or a dict) of >= 2 samples whose relative standard error, the channel
+    mean of sqrt(``color_var``) over the channel mean of ``color``, is at least ``rel_sd``: ``(..., H, W)``
+    booleans, None where the frame has no ``color_var`` or no sample count (`Config.outlier_rel_sd`)."""
+    fields = frame.to_dict() if isinstance(frame, Buffers) else frame
+    var = fields.get("color_var")
+    if var is None or (fields.get("spp") is None and fields.get(SAMPLE_COUNT_FIELD) is None):
+        return None
+    mean = jnp.mean(color.radiance(fields["color"]), -1)
+    sd = jnp.mean(jnp.sqrt(jnp.maximum(jnp.asarray(var, jnp.float32), 0.0)), -1)
+    rel = jnp.where(mean > 0, sd / jnp.where(mean > 0, mean, 1.0), 0.0)
+    return (rel >= rel_sd) & (sample_count(fields, "config.outlier_rel_sd")[..., 0] >= 2)
 
 
 def inputs(frame: Any, config: Config, scale: Any = None) -> jax.Array:
@@ -479,7 +509,7 @@ def inputs(frame: Any, config: Config, scale: Any = None) -> jax.Array:
     `exposure_scale` when the caller has it already (it divides the output by the same factor)."""
     get = lambda f: _get(frame, f)
     scale = exposure_scale(frame, config) if scale is None else scale
-    c = _cut_outliers(color.radiance(get("color")) * scale, config)
+    c = _cut_outliers(color.radiance(get("color")) * scale, config, frame)
     demod = color.demodulate(c, _albedo(get("albedo")), config.albedo_eps)
     parts = [color.gamma(demod, 1.0 / config.power) if config.input_transform == "power" else demod]
     has = (lambda f: f in frame) if isinstance(frame, dict) else (lambda f: False)
@@ -562,11 +592,13 @@ def step(params: dict, state: tuple, buffers: Buffers, config: Config) -> tuple[
     if config.accumulate_samples and projection is not None:  # without its projection: the history kept
         fields = buffers.to_dict() if isinstance(buffers, Buffers) else dict(buffers)
         spp = sample_count(fields, "config.accumulate_samples")
-        cut = _cut_outliers(c * scale, config) / scale
+        cut = _cut_outliers(c * scale, config, buffers) / scale
         acc, target, length = accumulate_step(acc, cut, _get(buffers, "position"), _get(buffers, "normal"), projection,
                                               frames=config.accumulate_samples / jnp.maximum(spp, 1.0),
                                               tolerance=config.accumulate_tolerance, clamp=config.accumulate_clamp)
-        frame = fields | {"color": target, SAMPLE_COUNT_FIELD: spp * length}
+        # the accumulated colour, whose variance the frame's `color_var` no longer gives (its cut already made)
+        frame = {k: v for k, v in fields.items() if k != "color_var"}
+        frame |= {"color": target, SAMPLE_COUNT_FIELD: spp * length}
     x, size = nn.pad_to_multiple(inputs(frame, config, scale), 32)
     hidden, y = _forward(params, x, hidden, config)
     hidden = hidden + ((acc,) if config.accumulate_samples else ())
