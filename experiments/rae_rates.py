@@ -165,6 +165,8 @@ def _train_arm(arm: str, data, out: Path, args, steps: int, name: str | None = N
     method = _method(arm, **config)
     init = start_weights(Path(args.init), method, out / "start")
     fields = {"schedule": "constant", "seed": args.seed} if config else {}
+    if config and args.ema:
+        fields["ema"] = args.ema
     run = TrainConfig.for_method(method, steps=steps, resume=True, val_data=args.val_data, init_from=str(init),
                                  validate_every=args.validate_every, select=args.select, progress=False,
                                  learning_rate=args.lr, time_limit=args.seconds, **fields)
@@ -465,6 +467,8 @@ def main() -> None:
                     "(`rae.Config.spike_weight`; 0: off)")
     ap.add_argument("--train-accumulate", type=float, default=0.0, help="level: the share of sequence crops below "
                     "the accumulation's sample count trained on accumulated colour (`rae.Config.train_accumulate`)")
+    ap.add_argument("--ema", type=float, default=0.0, help="level: the decay of the params' moving average that "
+                    "validation, best/ and weights/ use (`jaxdenoise.train.TrainConfig.ema`; 0: off)")
     ap.add_argument("--seed", type=int, default=3, help="level: the crops' seed (the shipped run drew seed 0's)")
     ap.add_argument("--factors", default="0,1,1.5,2,3,4,8,16,32,64",
                     help="clamp: outlier-clamp factors to score, the first the reference (0: off)")
@@ -546,6 +550,7 @@ def main() -> None:
             if args.train_accumulate:
                 extra["train_accumulate"] = args.train_accumulate
                 name += f"_acc{args.train_accumulate:g}"
+            name += f"_ema{args.ema:g}" if args.ema else ""
             rec = _train_arm(arm, data, out, args, args.steps, name, level_weight=args.level_weight, **extra)
         else:
             name, rec = arm, _train_arm(arm, data, out, args, args.steps)
