@@ -165,7 +165,7 @@ def _train_arm(arm: str, data, out: Path, args, steps: int, name: str | None = N
     method = _method(arm, **config)
     init = start_weights(Path(args.init), method, out / "start")
     fields = {"schedule": "constant", "seed": args.seed} if config else {}
-    if config and args.ema:
+    if args.ema:  # `level` runs only (main refuses it elsewhere)
         fields["ema"] = args.ema
     run = TrainConfig.for_method(method, steps=steps, resume=True, val_data=args.val_data, init_from=str(init),
                                  validate_every=args.validate_every, select=args.select, progress=False,
@@ -508,6 +508,8 @@ def main() -> None:
     ap.add_argument("--taa-data", default="data/rae_library_val2",
                     help="taa: more validation fly-throughs scored beside --val-data (comma list; '' for none)")
     args = ap.parse_args()
+    if args.ema and args.what != "level":
+        raise SystemExit(f"--ema is a setting of 'level' runs; '{args.what}' does not take it")
     out = Path(args.out)
     if args.what in ("taa", "accumulate", "background", "match-frames"):
         res = choose_temporal(args)

@@ -100,14 +100,15 @@ def clamp_outliers(color, factor: float, floor: float, *, against: str = "neighb
         near = _ring_max(src, int(radius))
     limit = jnp.maximum(near, float(floor))
     if unfloored is not None:
+        mask = jnp.asarray(unfloored)
         try:
-            np.broadcast_shapes(tuple(np.shape(unfloored)), lum.shape)
+            np.broadcast_shapes(mask.shape, lum.shape)
         except ValueError:
-            raise FilterError(f"argument 'unfloored' has shape {tuple(np.shape(unfloored))}; expected a mask "
-                              f"broadcastable to the image's (..., H, W) = {lum.shape}") from None
-        if jnp.asarray(unfloored).dtype != bool:
-            raise FilterError(f"argument 'unfloored' has dtype {jnp.asarray(unfloored).dtype}; expected bool")
-        limit = jnp.where(unfloored, near, limit)
+            raise FilterError(f"argument 'unfloored' has shape {mask.shape}; expected a mask broadcastable to the "
+                              f"image's (..., H, W) = {lum.shape}") from None
+        if mask.dtype != bool:
+            raise FilterError(f"argument 'unfloored' has dtype {mask.dtype}; expected bool")
+        limit = jnp.where(mask, near, limit)
     limit = factor * limit
     cut = lum > limit  # then lum > 0: the inner where keeps the unused branch's gradient finite at lum = 0
     return c * jnp.where(cut, limit / jnp.where(cut, lum, 1.0), 1.0)[..., None]
