@@ -108,8 +108,9 @@ def test_demc_refines_between_the_exact_pixels_and_the_level_match():
     c[:4, :4] = 5.0  # an exact (emitter-like) block
     b = Buffers(color=c, normal=f(3) * 2 - 1, position=f(3) * 5, albedo=f(3), albedo2=f(3), spp=1)
     p = demc.init(jax.random.PRNGKey(0), cfg)
-    got = np.asarray(demc.apply(p, b, cfg))
-    net = demc.apply(p, b, dataclasses.replace(cfg, keep_exact=False, match_level=0.0, refine_sigma=0.0))
+    apply = jax.jit(demc.apply, static_argnums=2)  # one compile per config instead of op-by-op dispatch
+    got = np.asarray(apply(p, b, cfg))
+    net = apply(p, b, dataclasses.replace(cfg, keep_exact=False, match_level=0.0, refine_sigma=0.0))
     exact = exact_mask(c, None, 1, window=3)
     x = jnp.where(exact, c, net)
     scale = demc.exposure_scale(b, cfg)
@@ -119,7 +120,7 @@ def test_demc_refines_between_the_exact_pixels_and_the_level_match():
     np.testing.assert_allclose(got, np.asarray(jnp.where(exact, c, x)), rtol=1e-5, atol=1e-6)
     assert np.all(got[1:3, 1:3] == 5.0)
     k = np.float32(8.0)
-    np.testing.assert_allclose(np.asarray(demc.apply(p, b.replace(color=k * c), cfg)), k * got, rtol=2e-4, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(apply(p, b.replace(color=k * c), cfg)), k * got, rtol=2e-4, atol=1e-6)
 
 
 def test_rae_refines_each_frame_before_taa():
@@ -132,9 +133,10 @@ def test_rae_refines_each_frame_before_taa():
     b = Buffers(color=f(3) * 2, albedo=f(3), normal=f(3) * 2 - 1, position=f(3) * 5, roughness=f(1), spp=1,
                 world_to_camera=cam)
     p = rae.init(jax.random.PRNGKey(0), cfg)
-    s_on, y_on = rae.step(p, rae.init_state(b, cfg), b, cfg)
+    step = jax.jit(rae.step, static_argnums=3)  # one compile per config instead of op-by-op dispatch
+    s_on, y_on = step(p, rae.init_state(b, cfg), b, cfg)
     off = dataclasses.replace(cfg, refine_sigma=0.0)
-    s_off, y_off = rae.step(p, rae.init_state(b, off), b, off)
+    s_off, y_off = step(p, rae.init_state(b, off), b, off)
     scale = rae.exposure_scale(b, cfg)
     want = refine(y_off * scale, b.albedo, b.normal, sigma=1.5, range_sigma=cfg.refine_range,
                   albedo_sigma=cfg.refine_albedo, normal_sigma=cfg.refine_normal) / scale

@@ -57,7 +57,6 @@ def test_tiles_carry_the_whole_frames_statistics():
     assert tiling.tile_frame(b, {}, 0, 0, 4, 4).color.shape == (4, 4, 3)  # no statistics: a Buffers
 
 
-@pytest.mark.slow  # 44 s: the default run's longest test (its tiling is covered there by a filter's)
 def test_network_tiled_under_a_budget_equals_the_whole_frame():
     """`demc` under a budget below its whole-frame program: tiles are chosen, each within the budget,
     and the output equals the whole frame's within the tolerance its margin was chosen for
