@@ -33,7 +33,7 @@ def __getattr__(name: str):
 
 # The one version number (pyproject.toml reads it): bumped whenever outputs change (a method's
 # result, a file format, a weight), each bump listed in CHANGELOG.md.
-__version__ = "0.9.23"
+__version__ = "0.9.24"
 
 __all__ = [
     "Buffers", "BuffersError", "ExrError", "JaxdenoiseError", "JaxdenoiseWarning", "MethodError", "denoise", "denoise_sequence", "load", "method_names",

@@ -9,8 +9,10 @@ solvers) or read it through unbounded filters do not declare it and are never ti
 - **Grid.** The frame is cut into cores of ``tile`` x ``tile`` pixels (the last row and column of
   cores may be smaller); each core is denoised inside a window of ``tile + 2 margin`` pixels around
   it, shifted inward at the frame's border, so every window has the same shape (one compile) and
-  lies inside the frame (no padding the untiled run would not see). The output keeps each window's
-  core: no blending, every output pixel comes from exactly one tile.
+  lies inside the frame (no padding the untiled run would not see). Cores whose windows would
+  coincide (at the far border, or along a side no longer than a window) are merged into one, so no
+  window is computed twice. The output keeps each window's core: no blending, every output pixel
+  comes from exactly one tile.
 - **Whole-frame statistics.** A method that normalises by statistics of the whole frame
   (``frame_stats``: DEMC's position moments, GradNet's largest depth, RAE's mean depth) gets them
   computed once on the whole frame and carried by every tile (``stat.<name>``, the mechanism training
@@ -41,23 +43,30 @@ def margin(m: Method) -> int | None:
     return None if value is None else int(value)
 
 
+def _segments(n: int, tile: int, pad: int, side: int) -> list[tuple[int, int, int]]:
+    """Along one side of ``n`` pixels: ``(window start, core start, core end)`` per window of ``side``
+    pixels, cores of ``tile`` pixels merged where their windows (shifted inward at the border) coincide."""
+    out: list[tuple[int, int, int]] = []
+    for c0 in range(0, n, tile):
+        c1, start = min(c0 + tile, n), min(max(c0 - pad, 0), n - side)
+        if out and out[-1][0] == start:
+            out[-1] = (start, out[-1][1], c1)
+        else:
+            out.append((start, c0, c1))
+    return out
+
+
 def windows(h: int, w: int, tile: int, pad: int) -> list[tuple[int, int, int, int, int, int]]:
     """The tiles of an ``h`` x ``w`` frame: ``(wy, wx, cy0, cx0, cy1, cx1)`` per tile, the window's
     top-left corner (window side ``min(tile + 2 pad, h)`` x ``min(tile + 2 pad, w)``, the same for
     every tile) and the core ``[cy0, cy1) x [cx0, cx1)`` the tile's output is kept on, in frame
-    coordinates. The cores partition the frame."""
+    coordinates. The cores partition the frame; cores whose windows would coincide (near the border,
+    or along a side no longer than a window) are merged, so no window is computed twice."""
     if tile < 1 or pad < 0:
         raise JaxdenoiseError(f"tiling: expected tile >= 1 and margin >= 0, got tile={tile}, margin={pad}")
     wh, ww = min(tile + 2 * pad, h), min(tile + 2 * pad, w)
-    out = []
-    for cy0 in range(0, h, tile):
-        cy1 = min(cy0 + tile, h)
-        wy = min(max(cy0 - pad, 0), h - wh)
-        for cx0 in range(0, w, tile):
-            cx1 = min(cx0 + tile, w)
-            wx = min(max(cx0 - pad, 0), w - ww)
-            out.append((wy, wx, cy0, cx0, cy1, cx1))
-    return out
+    return [(wy, wx, cy0, cx0, cy1, cx1) for wy, cy0, cy1 in _segments(h, tile, pad, wh)
+            for wx, cx0, cx1 in _segments(w, tile, pad, ww)]
 
 
 def frame_stat_values(m: Method, buffers: Buffers) -> dict[str, Any]:
@@ -121,8 +130,13 @@ def plan(fn, m: Method, params: Any, buffers: Buffers, max_bytes: int) -> tuple[
                               "on the whole frame)")
     stats = frame_stat_values(m, buffers)
     per_pixel = whole / (h * w)
-    side = int(np.sqrt(max_bytes / per_pixel)) - 2 * pad
-    tile = max(TILE_STEP, side // TILE_STEP * TILE_STEP)
+    # first guess: the largest tile whose window (capped at the frame's sides) fits at the whole frame's bytes
+    # per pixel; XLA's estimate for it is then checked, and the tile shrinks until it fits
+    tile = TILE_STEP
+    for t in range(-(-max(h, w) // TILE_STEP) * TILE_STEP, TILE_STEP - 1, -TILE_STEP):
+        if min(t + 2 * pad, h) * min(t + 2 * pad, w) * per_pixel <= max_bytes:
+            tile = t
+            break
     while True:
         wh, ww = min(tile + 2 * pad, h), min(tile + 2 * pad, w)
         need = fn.compile(params, tile_frame(buffers, stats, 0, 0, wh, ww), check=False).xla_bytes

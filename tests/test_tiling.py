@@ -14,10 +14,11 @@ from jaxdenoise.methods import get
 from tests.conftest import synthetic_frame
 
 
-@pytest.mark.parametrize("h,w,tile,pad", [(37, 53, 16, 5), (16, 16, 16, 4), (5, 70, 8, 30), (1, 1, 4, 2)])
+@pytest.mark.parametrize("h,w,tile,pad", [(37, 53, 16, 5), (16, 16, 16, 4), (5, 70, 8, 30), (1, 1, 4, 2), (256, 448, 64, 128)])
 def test_windows_partition_the_frame_and_share_one_shape(h, w, tile, pad):
     """Every pixel lies in exactly one core; every window has the same shape, lies inside the frame
-    and holds its core with ``pad`` pixels of context where the frame has them."""
+    and holds its core with ``pad`` pixels of context where the frame has them; no window is computed
+    twice (along a side no longer than a window, one core spans it)."""
     seen = np.zeros((h, w), int)
     wins = tiling.windows(h, w, tile, pad)
     wh, ww = min(tile + 2 * pad, h), min(tile + 2 * pad, w)
@@ -28,6 +29,7 @@ def test_windows_partition_the_frame_and_share_one_shape(h, w, tile, pad):
         assert cy0 - wy >= min(pad, cy0) and (wy + wh) - cy1 >= min(pad, h - cy1)
         assert cx0 - wx >= min(pad, cx0) and (wx + ww) - cx1 >= min(pad, w - cx1)
     assert np.all(seen == 1)
+    assert len({(wy, wx) for wy, wx, *_ in wins}) == len(wins)
 
 
 def test_a_local_filter_tiled_with_its_radius_equals_the_whole_frame():
