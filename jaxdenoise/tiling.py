@@ -6,9 +6,10 @@ whose module declares ``TILE_MARGIN`` (pixels of context a tile needs on each si
 measurement: docs/results/tiling/). Methods that solve for the whole frame (the screened-Poisson
 solvers) or read it through unbounded filters do not declare it and are never tiled.
 
-- **Grid.** The frame is cut into cores of ``tile`` x ``tile`` pixels (the last row and column of
-  cores may be smaller); each core is denoised inside a window of ``tile + 2 margin`` pixels around
-  it, shifted inward at the frame's border, so every window has the same shape (one compile) and
+- **Grid.** Along each side the frame is cut into cores of ``tile`` pixels, or the same number made
+  equal (rounded up to a multiple of 64 pixels) where that computes fewer pixels, so no window is
+  spent on a sliver of a core; each core is denoised inside a window of its side + 2 margin pixels
+  around it, shifted inward at the frame's border, so every window has the same shape (one compile) and
   lies inside the frame (no padding the untiled run would not see). Cores whose windows would
   coincide (at the far border, or along a side no longer than a window) are merged into one, so no
   window is computed twice. The output keeps each window's core: no blending, every output pixel
@@ -31,7 +32,7 @@ from .buffers import ALL_FIELDS, METADATA_FIELDS, Buffers
 from .errors import JaxdenoiseError
 from .methods import Method
 
-__all__ = ["margin", "windows", "frame_stat_values", "tile_frame", "denoise_tiled", "plan", "infer", "TILE_STEP"]
+__all__ = ["margin", "window_shape", "windows", "frame_stat_values", "tile_frame", "denoise_tiled", "plan", "infer", "TILE_STEP"]
 
 TILE_STEP = 64  # tile sides are multiples of this (every network's stride divides it)
 
@@ -43,30 +44,48 @@ def margin(m: Method) -> int | None:
     return None if value is None else int(value)
 
 
-def _segments(n: int, tile: int, pad: int, side: int) -> list[tuple[int, int, int]]:
-    """Along one side of ``n`` pixels: ``(window start, core start, core end)`` per window of ``side``
-    pixels, cores of ``tile`` pixels merged where their windows (shifted inward at the border) coincide."""
-    out: list[tuple[int, int, int]] = []
-    for c0 in range(0, n, tile):
-        c1, start = min(c0 + tile, n), min(max(c0 - pad, 0), n - side)
-        if out and out[-1][0] == start:
-            out[-1] = (start, out[-1][1], c1)
-        else:
-            out.append((start, c0, c1))
-    return out
+def _segments(n: int, tile: int, pad: int) -> tuple[int, list[tuple[int, int, int]]]:
+    """Along one side of ``n`` pixels: the window side and ``(window start, core start, core end)`` per
+    window. Cores of ``tile`` pixels, or the same number made equal (rounded up to a multiple of
+    `TILE_STEP` when ``tile`` is one) so the last is not a sliver whose window is mostly context;
+    cores whose windows (shifted inward at the border) coincide merged; of the two, the grid that
+    computes fewer pixels along the side (ties: fewer windows)."""
+    k = -(-n // tile)
+    even = -(-n // k)
+    if tile % TILE_STEP == 0:
+        even = min(tile, -(-even // TILE_STEP) * TILE_STEP)
+    best = None
+    for step in dict.fromkeys((tile, even)):
+        side = min(step + 2 * pad, n)
+        segs: list[tuple[int, int, int]] = []
+        for c0 in range(0, n, step):
+            c1, start = min(c0 + step, n), min(max(c0 - pad, 0), n - side)
+            if segs and segs[-1][0] == start:
+                segs[-1] = (start, segs[-1][1], c1)
+            else:
+                segs.append((start, c0, c1))
+        if best is None or (len(segs) * side, len(segs)) < (len(best[1]) * best[0], len(best[1])):
+            best = (side, segs)
+    return best
+
+
+def window_shape(h: int, w: int, tile: int, pad: int) -> tuple[int, int]:
+    """The one window shape of every tile of an ``h`` x ``w`` frame (`windows`)."""
+    return _segments(h, tile, pad)[0], _segments(w, tile, pad)[0]
 
 
 def windows(h: int, w: int, tile: int, pad: int) -> list[tuple[int, int, int, int, int, int]]:
     """The tiles of an ``h`` x ``w`` frame: ``(wy, wx, cy0, cx0, cy1, cx1)`` per tile, the window's
-    top-left corner (window side ``min(tile + 2 pad, h)`` x ``min(tile + 2 pad, w)``, the same for
-    every tile) and the core ``[cy0, cy1) x [cx0, cx1)`` the tile's output is kept on, in frame
-    coordinates. The cores partition the frame; cores whose windows would coincide (near the border,
-    or along a side no longer than a window) are merged, so no window is computed twice."""
+    top-left corner (the same `window_shape` for every tile) and the core ``[cy0, cy1) x [cx0, cx1)``
+    the tile's output is kept on, in frame coordinates. Along each side the cores are at most ``tile``
+    pixels, each inside a window with ``pad`` pixels of context where the frame has them; of cores of
+    ``tile`` and the same number made equal, the grid computing fewer pixels. The cores partition the
+    frame; cores whose windows would coincide (near the border, or along a side no longer than a
+    window) are merged, so no window is computed twice."""
     if tile < 1 or pad < 0:
         raise JaxdenoiseError(f"tiling: expected tile >= 1 and margin >= 0, got tile={tile}, margin={pad}")
-    wh, ww = min(tile + 2 * pad, h), min(tile + 2 * pad, w)
-    return [(wy, wx, cy0, cx0, cy1, cx1) for wy, cy0, cy1 in _segments(h, tile, pad, wh)
-            for wx, cx0, cx1 in _segments(w, tile, pad, ww)]
+    return [(wy, wx, cy0, cx0, cy1, cx1) for wy, cy0, cy1 in _segments(h, tile, pad)[1]
+            for wx, cx0, cx1 in _segments(w, tile, pad)[1]]
 
 
 def frame_stat_values(m: Method, buffers: Buffers) -> dict[str, Any]:
@@ -106,7 +125,7 @@ def denoise_tiled(fn, m: Method, params: Any, buffers: Buffers, *, tile: int, pa
     h, w = np.shape(buffers.color)[:2]
     stats = frame_stat_values(m, buffers)
     tiles = windows(h, w, int(tile), pad)
-    wh, ww = min(tile + 2 * pad, h), min(tile + 2 * pad, w)
+    wh, ww = window_shape(h, w, int(tile), pad)
     out = np.zeros((h, w, 3), np.float32)
     for wy, wx, cy0, cx0, cy1, cx1 in tiles:
         y = np.asarray(fn(params, tile_frame(buffers, stats, wy, wx, wh, ww)), np.float32)
@@ -134,11 +153,12 @@ def plan(fn, m: Method, params: Any, buffers: Buffers, max_bytes: int) -> tuple[
     # per pixel; XLA's estimate for it is then checked, and the tile shrinks until it fits
     tile = TILE_STEP
     for t in range(-(-max(h, w) // TILE_STEP) * TILE_STEP, TILE_STEP - 1, -TILE_STEP):
-        if min(t + 2 * pad, h) * min(t + 2 * pad, w) * per_pixel <= max_bytes:
+        wh, ww = window_shape(h, w, t, pad)
+        if wh * ww * per_pixel <= max_bytes:
             tile = t
             break
     while True:
-        wh, ww = min(tile + 2 * pad, h), min(tile + 2 * pad, w)
+        wh, ww = window_shape(h, w, tile, pad)
         need = fn.compile(params, tile_frame(buffers, stats, 0, 0, wh, ww), check=False).xla_bytes
         if need is None or need <= max_bytes:
             return tile, need

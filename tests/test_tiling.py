@@ -21,7 +21,8 @@ def test_windows_partition_the_frame_and_share_one_shape(h, w, tile, pad):
     twice (along a side no longer than a window, one core spans it)."""
     seen = np.zeros((h, w), int)
     wins = tiling.windows(h, w, tile, pad)
-    wh, ww = min(tile + 2 * pad, h), min(tile + 2 * pad, w)
+    wh, ww = tiling.window_shape(h, w, tile, pad)
+    assert wh <= min(tile + 2 * pad, h) and ww <= min(tile + 2 * pad, w)
     for wy, wx, cy0, cx0, cy1, cx1 in wins:
         seen[cy0:cy1, cx0:cx1] += 1
         assert 0 <= wy <= h - wh and 0 <= wx <= w - ww
@@ -30,6 +31,18 @@ def test_windows_partition_the_frame_and_share_one_shape(h, w, tile, pad):
         assert cx0 - wx >= min(pad, cx0) and (wx + ww) - cx1 >= min(pad, w - cx1)
     assert np.all(seen == 1)
     assert len({(wy, wx) for wy, wx, *_ in wins}) == len(wins)
+
+
+def test_grid_computes_no_sliver_or_repeated_window():
+    """A 4K frame in tiles of 896 with a 128-px margin: 3 x 5 equal cores (768 = 720 rounded up to 64,
+    and 768) in 1024-px windows, not 1152-px windows around cores of 896 and last ones of 368 and 256 (-21 %
+    of the pixels); a 256 x 448 frame in 64-px tiles: 3 windows of the frame's height, not 28 (the
+    cores a window already holds merged)."""
+    assert tiling.window_shape(2160, 3840, 896, 128) == (1024, 1024)
+    assert len(tiling.windows(2160, 3840, 896, 128)) == 15
+    assert [(wx, cx0, cx1) for _, wx, _, cx0, _, cx1 in tiling.windows(256, 448, 64, 128)] == [
+        (0, 0, 192), (64, 192, 256), (128, 256, 448)]
+    assert tiling.window_shape(37, 53, 16, 5) == (26, 26)  # equal cores would need more windows here: kept
 
 
 def test_a_local_filter_tiled_with_its_radius_equals_the_whole_frame():

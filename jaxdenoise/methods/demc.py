@@ -66,11 +66,10 @@ __all__ = ["Config", "needs", "required", "keep_exact_pixels", "exact_pixels", "
            "init_from_data", "apply", "forward", "loss", "relative_loss", "make_dataset", "batch", "inputs",
            "frame_stats", "position_moments", "exposure_scale", "num_params", "widths_of", "FEATURES", "TRAIN",
            "FROZEN", "WEIGHTS"]
-# Pixels of context a tile needs on each side (`jaxdenoise.tiling`), measured on a real frame
-# (docs/results/tiling/): with the 0.8.1 weights max |tiled - whole| / (|whole| + 0.01) of 1.3e-3 and
-# RelMSE -0.00 % at 128 px, 1.4e-2 and -0.10 % at 96, 7.8e-2 and -0.82 % at 64 (the 0.8.0 weights:
-# 1.9e-3 at 128, 1.0e-2 at 96; 2.7e-2 at 96 on tests/test_tiling.py's synthetic frame); the
-# paper-recipe weights needed 96.
+# Pixels of context a tile needs on each side (`jaxdenoise.tiling`): the smallest margin whose max
+# |tiled - whole| / (|whole| + 0.01) on a real frame is below 5e-3 (docs/results/tiling/, re-measured at
+# 0.9.24: 7.8e-4 and RelMSE +0.00 % at 128 px, 6.0e-3 and -0.01 % at 96, 8.1e-2 and -0.15 % at 64; the
+# 0.8.x weights: 1.3e-3 / 1.9e-3 at 128, 1.0e-2 / 1.4e-2 at 96); the paper-recipe weights needed 96.
 TILE_MARGIN = 128
 
 EXPOSURES = ("none", "frame")

@@ -71,9 +71,9 @@ __all__ = ["Config", "needs", "required", "init", "apply", "init_state", "step",
            "make_dataset", "batch", "frame_stats", "normalized_depth", "surface_mean", "exposure_scale",
            "rate_channel", "sample_count", "crop_projection", "INPUT_TRANSFORMS", "EXPOSURES", "RECIPES", "RATE_SCALE",
            "loss_terms", "log_kernel", "num_params", "TRAIN", "WEIGHTS", "AUX"]
-# Pixels of context a tile needs on each side (`jaxdenoise.tiling`), measured on a real frame
-# (docs/results/tiling/, re-measured with the 0.9.0 weights): max |tiled - whole| / (|whole| + 0.01)
-# of 4.2e-3 and RelMSE +0.01 % at 128 px, against 1.0e-2 and -0.02 % at 96.
+# Pixels of context a tile needs on each side (`jaxdenoise.tiling`): the smallest margin whose max
+# |tiled - whole| / (|whole| + 0.01) on a real frame is below 5e-3 (docs/results/tiling/, re-measured at
+# 0.9.24: 4.1e-3 and RelMSE +0.01 % at 128 px, against 8.9e-3 and -0.04 % at 96).
 TILE_MARGIN = 128
 
 # The auxiliary inputs of Sec. 3.2 and their channels (Fig. 3's ladder drops them in this order).
