@@ -99,7 +99,7 @@ def denoise(buffers: Buffers, method: str = AUTO, params: Any = None, *,
 
     ``max_memory_mb``: a frame whose program XLA estimates above this many MiB is denoised in the
     largest overlapping tiles that fit (one frame; the networks only: `jaxdenoise.tiling`), like OIDN's
-    ``maxMemoryMB``; ``tile``: tiles of this side in pixels, whatever the memory."""
+    ``maxMemoryMB``; ``tile``: tiles of at most this side in pixels, whatever the memory."""
     if method == AUTO and isinstance(buffers, Buffers):
         method = choose_method(buffers)
     if isinstance(method, str) and params is None and weights is None:

@@ -259,8 +259,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--max-memory-mb", type=float,
                    help="denoise a frame whose program XLA estimates above this many MiB in the largest "
                         "overlapping tiles that fit (networks only; like OIDN's maxMemoryMB) (default: whole)")
-    s.add_argument("--tile", type=int, help="denoise in overlapping tiles of this side in pixels (networks only) "
-                                            "(default: whole, or what --max-memory-mb allows)")
+    s.add_argument("--tile", type=int, help="denoise in overlapping tiles of at most this side in pixels "
+                                            "(networks only) (default: whole, or what --max-memory-mb allows)")
     s.set_defaults(func=_cmd_denoise)
 
     s = sub.add_parser("bench", help="error against run time of methods on a data folder",
