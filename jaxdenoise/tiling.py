@@ -32,7 +32,8 @@ from .buffers import ALL_FIELDS, METADATA_FIELDS, Buffers
 from .errors import JaxdenoiseError
 from .methods import Method
 
-__all__ = ["margin", "window_shape", "windows", "frame_stat_values", "tile_frame", "denoise_tiled", "plan", "infer", "TILE_STEP"]
+__all__ = ["margin", "window_shape", "windows", "frame_stat_values", "tile_frame", "denoise_tiled", "plan", "infer",
+           "TILE_STEP"]
 
 TILE_STEP = 64  # tile sides are multiples of this (every network's stride divides it)
 

@@ -14,7 +14,8 @@ from jaxdenoise.methods import get
 from tests.conftest import synthetic_frame
 
 
-@pytest.mark.parametrize("h,w,tile,pad", [(37, 53, 16, 5), (16, 16, 16, 4), (5, 70, 8, 30), (1, 1, 4, 2), (256, 448, 64, 128)])
+@pytest.mark.parametrize("h,w,tile,pad", [(37, 53, 16, 5), (16, 16, 16, 4), (5, 70, 8, 30), (1, 1, 4, 2),
+                                          (256, 448, 64, 128)])
 def test_windows_partition_the_frame_and_share_one_shape(h, w, tile, pad):
     """Every pixel lies in exactly one core; every window has the same shape, lies inside the frame
     and holds its core with ``pad`` pixels of context where the frame has them; no window is computed
