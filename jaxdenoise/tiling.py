@@ -51,6 +51,8 @@ def _segments(n: int, tile: int, pad: int) -> tuple[int, list[tuple[int, int, in
     `TILE_STEP` when ``tile`` is one) so the last is not a sliver whose window is mostly context;
     cores whose windows (shifted inward at the border) coincide merged; of the two, the grid that
     computes fewer pixels along the side (ties: fewer windows)."""
+    if tile < 1 or pad < 0:
+        raise JaxdenoiseError(f"tiling: expected tile >= 1 and margin >= 0, got tile={tile}, margin={pad}")
     k = -(-n // tile)
     even = -(-n // k)
     if tile % TILE_STEP == 0:
@@ -83,8 +85,6 @@ def windows(h: int, w: int, tile: int, pad: int) -> list[tuple[int, int, int, in
     ``tile`` and the same number made equal, the grid computing fewer pixels. The cores partition the
     frame; cores whose windows would coincide (near the border, or along a side no longer than a
     window) are merged, so no window is computed twice."""
-    if tile < 1 or pad < 0:
-        raise JaxdenoiseError(f"tiling: expected tile >= 1 and margin >= 0, got tile={tile}, margin={pad}")
     return [(wy, wx, cy0, cx0, cy1, cx1) for wy, cy0, cy1 in _segments(h, tile, pad)[1]
             for wx, cx0, cx1 in _segments(w, tile, pad)[1]]
 

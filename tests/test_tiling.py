@@ -44,6 +44,10 @@ def test_grid_computes_no_sliver_or_repeated_window():
     assert [(wx, cx0, cx1) for _, wx, _, cx0, _, cx1 in tiling.windows(256, 448, 64, 128)] == [
         (0, 0, 192), (64, 192, 256), (128, 256, 448)]
     assert tiling.window_shape(37, 53, 16, 5) == (26, 26)  # equal cores would need more windows here: kept
+    for bad in (lambda: tiling.windows(8, 8, 0, 2), lambda: tiling.window_shape(8, 8, 0, 2),
+                lambda: tiling.window_shape(8, 8, 4, -1)):
+        with pytest.raises(JaxdenoiseError, match="tiling: expected tile >= 1"):
+            bad()
 
 
 def test_a_local_filter_tiled_with_its_radius_equals_the_whole_frame():
